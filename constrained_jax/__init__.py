@@ -1,0 +1,20 @@
+"""constrained_jax: constrained extremization, variational problems and mechanics.
+
+Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-point
+(KKT) system by autodiff and solves it. See `README.md` and `DESIGN.md`.
+"""
+
+import importlib.metadata
+
+from . import scenes as scenes
+from ._extremize import (
+    EXTREMUM as EXTREMUM,
+    Extremum as Extremum,
+    extremize as extremize,
+)
+from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
+from ._linalg import DenseLU as DenseLU, MINRES as MINRES
+from ._results import RESULTS as RESULTS
+
+
+__version__ = importlib.metadata.version("constrained_jax")

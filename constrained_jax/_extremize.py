@@ -1,0 +1,324 @@
+"""Constrained extremization of functions with Lagrange multipliers.
+
+Extremize `F(x)` subject to `G_j(x) = 0` by freely extremizing
+`F*(x, lambda) = F(x) + sum_j lambda_j G_j(x)` over `x` and `lambda`: the `n + k`
+equations `grad F + sum_j lambda_j grad G_j = 0`, `G_j = 0`.
+"""
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.flatten_util as jfu
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
+from ._kkt import (
+    AbstractKKTSolver,
+    constraint_jacobian,
+    gram_factors,
+    kkt_residual,
+    least_squares_multipliers,
+    Newton,
+    reduced_hessian_extremes,
+    tangent_projector,
+)
+from ._misc import all_finite, as_traced_args, check_max_steps
+from ._results import RESULTS
+
+
+class EXTREMUM(eqx.Enumeration):
+    """What kind of stationary point an [`constrained_jax.Extremum`][] is.
+
+    Judged by the eigenvalues of the Hessian of `F* = F + lambda . G` restricted to the
+    tangent space `ker J` of the constraints (the second-order conditions).
+    """
+
+    minimum = "a strict local minimum: the reduced Hessian is positive definite"
+    maximum = "a strict local maximum: the reduced Hessian is negative definite"
+    saddle = "a saddle: the reduced Hessian has eigenvalues of both signs"
+    degenerate = (
+        "degenerate: the reduced Hessian is singular (an eigenvalue is zero to within "
+        "sqrt(eps) of its scale), so the second-order test is inconclusive"
+    )
+    isolated = (
+        "isolated: as many independent constraints as unknowns, so the feasible set is "
+        "a single point near x and there is no tangent space to test"
+    )
+
+
+class Extremum(eqx.Module):
+    """The solution of [`constrained_jax.extremize`][].
+
+    **Attributes:**
+
+    - `x`: the stationary point, with the structure of `x0`.
+    - `multipliers`: the Lagrange multipliers `lambda`, shape `(k,)`, in the convention
+        `grad F + sum_j lambda_j grad G_j = 0`.
+    - `value`: `F(x)`. By the envelope theorem its derivative with respect to a
+        parameter `p` is `dF/dp + lambda . dG/dp`.
+    - `kind`: an [`constrained_jax.EXTREMUM`][] member.
+    - `result`: a [`constrained_jax.RESULTS`][] member; `RESULTS.successful` if the
+        solve converged.
+    - `stats`: `num_steps`, `max_steps`, the extreme eigenvalues of the reduced
+        Hessian (`reduced_hessian_eigenvalues`, `[min, max]`) and the final KKT
+        residual (`kkt_residual`, root mean square).
+    """
+
+    x: X
+    multipliers: Float[Array, " k"]
+    value: Scalar
+    kind: EXTREMUM
+    result: RESULTS
+    stats: dict[str, Any]
+
+
+def _flat_constraints(constraints, unravel):
+    def flat(x, args):
+        out = constraints(unravel(x), args)
+        return jnp.atleast_1d(out)
+
+    return flat
+
+
+def _check_structure(objective, constraints, x_flat, args, multipliers0):
+    f_struct = jax.eval_shape(objective, x_flat, args)
+    if not (isinstance(f_struct, jax.ShapeDtypeStruct) and f_struct.shape == ()):
+        shape = getattr(f_struct, "shape", type(f_struct).__name__)
+        raise ValueError(
+            f"The objective F(x, args) must return a scalar, but it returned {shape}. "
+            "Extremize a scalar function, for example the sum or the norm of a vector."
+        )
+    if not jnp.issubdtype(f_struct.dtype, jnp.floating):
+        raise ValueError(
+            f"The objective F(x, args) must return a floating-point scalar, got dtype "
+            f"{f_struct.dtype}."
+        )
+    n = x_flat.size
+    if constraints is None:
+        k = 0
+    else:
+        g_struct = jax.eval_shape(constraints, x_flat, args)
+        if not isinstance(g_struct, jax.ShapeDtypeStruct) or g_struct.ndim != 1:
+            shape = getattr(g_struct, "shape", type(g_struct).__name__)
+            raise ValueError(
+                "The constraints G(x, args) must return an array of shape (k,) (or a "
+                f"scalar for a single constraint), but returned {shape}. Stack the "
+                "constraints into one vector, e.g. `jnp.stack([g1, g2])`."
+            )
+        k = g_struct.shape[0]
+        if k == 0:
+            raise ValueError(
+                "The constraints returned an empty array: pass `constraints=None` for "
+                "an unconstrained extremization."
+            )
+        if k > n:
+            raise ValueError(
+                f"There are more constraints (k = {k}) than unknowns (n = {n}): at most "
+                f"n of them can be independent, so the multipliers are not determined. "
+                "Remove the redundant constraints."
+            )
+    if multipliers0 is not None and jnp.shape(multipliers0) != (k,):
+        raise ValueError(
+            f"`multipliers0` must have shape (k,) = ({k},), one per constraint, got "
+            f"{jnp.shape(multipliers0)}."
+        )
+    return n, k
+
+
+def _primal(inputs):
+    objective, constraints, solver, z0, args, n, max_steps, start_ok = inputs
+    residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
+    z, result, stats = solver.solve(residual, z0, args, max_steps, start_ok)
+    return z, (result, stats)
+
+
+def _rewrite(z, aux, inputs):
+    del aux
+    objective, constraints, _, _, args, n, _, _ = inputs
+    return kkt_residual(objective, constraints, z, args, n)
+
+
+def extremize(
+    objective: ObjectiveFn,
+    x0: X,
+    args: Args = None,
+    *,
+    constraints: ConstraintFn | None = None,
+    solver: AbstractKKTSolver = Newton(),
+    multipliers0: Float[Array, " k"] | None = None,
+    max_steps: int = 256,
+    throw: bool = True,
+) -> Extremum:
+    """Find a stationary point of `F(x)` subject to `G(x) = 0` with Lagrange multipliers.
+
+    Solves the `n + k` equations
+
+        grad F(x) + sum_j lambda_j grad G_j(x) = 0,    G_j(x) = 0,
+
+    i.e. freely extremizes `F* = F + lambda . G` over `x` and `lambda`. Gradients,
+    Hessians and constraint Jacobians come from autodiff.
+
+    **Arguments:**
+
+    - `objective`: `F(x, args) -> scalar`.
+    - `x0`: the starting point: an array of shape `(n,)` or any pytree of arrays.
+    - `args`: parameters, passed last to `F` and `G`. Python numbers in it are turned
+        into arrays, so changing them never recompiles; anything that must stay static
+        belongs in the closure of `F`.
+    - `constraints`: `G(x, args) -> (k,)` (a scalar means one constraint), or `None`.
+    - `solver`: an [`constrained_jax.AbstractKKTSolver`][]; by default
+        `Newton(rtol=1e-10, atol=1e-10)` with dense linear algebra. Large problems:
+        `Newton(linear_solver=MINRES(...))`.
+    - `multipliers0`: a starting guess for `lambda`; by default the least-squares
+        multipliers at `x0`, `-(J J^T)^{-1} J grad F`.
+    - `max_steps`: the most Newton steps.
+    - `throw`: raise on failure if `True`; otherwise report it in `result`.
+
+    **Returns:**
+
+    An [`constrained_jax.Extremum`][].
+
+    Differentiable with respect to `args` (and to arrays `F`, `G` close over) by the
+    implicit function theorem on the KKT system: the backward pass costs one more
+    linear solve with the KKT matrix, however many Newton steps were taken. Composes
+    with `jax.jit` and `jax.vmap`.
+
+    !!! note
+
+        Which stationary point is found depends on `x0`: Newton's method on the KKT
+        system converges to nearby minima, maxima and saddles alike. Check `kind`.
+    """
+    args = as_traced_args(args)
+    return _extremize(
+        objective,
+        x0,
+        args,
+        constraints,
+        solver,
+        multipliers0,
+        max_steps,
+        throw,
+    )
+
+
+@eqx.filter_jit
+def _extremize(objective, x0, args, constraints, solver, multipliers0, max_steps, throw):
+    if not isinstance(solver, AbstractKKTSolver):
+        raise ValueError(
+            f"`solver` must be a constrained_jax solver such as `cjax.Newton()`, got "
+            f"{type(solver).__name__}."
+        )
+    check_max_steps(max_steps)
+    if not callable(objective):
+        raise ValueError("`objective` must be a callable F(x, args) -> scalar.")
+    if constraints is not None and not callable(constraints):
+        raise ValueError("`constraints` must be a callable G(x, args) -> (k,) or None.")
+
+    leaves = jtu.tree_leaves(x0)
+    if not leaves:
+        raise ValueError("`x0` has no arrays in it: pass the starting point.")
+    for leaf in leaves:
+        if not jnp.issubdtype(jnp.result_type(leaf), jnp.number):
+            raise ValueError(f"`x0` must hold numbers, got dtype {jnp.result_type(leaf)}.")
+    x0 = jtu.tree_map(_inexact_asarray, x0)
+    x_flat, unravel = jfu.ravel_pytree(x0)
+    objective_flat = lambda x, a: objective(unravel(x), a)
+    constraints_flat = (
+        None if constraints is None else _flat_constraints(constraints, unravel)
+    )
+    n, k = _check_structure(objective_flat, constraints_flat, x_flat, args, multipliers0)
+    dtype = x_flat.dtype
+
+    objective_flat = eqx.filter_closure_convert(objective_flat, x_flat, args)
+    if constraints_flat is not None:
+        constraints_flat = eqx.filter_closure_convert(constraints_flat, x_flat, args)
+
+    start_ok = all_finite((x_flat, args, multipliers0))
+    x_safe = jnp.where(start_ok, x_flat, 0.0)
+    if k == 0:
+        lam0 = jnp.zeros((0,), dtype)
+    elif multipliers0 is None:
+        jac0 = constraint_jacobian(constraints_flat, x_safe, args)
+        grad0 = jax.grad(objective_flat)(x_safe, args)
+        lam0 = least_squares_multipliers(grad0, jac0, gram_factors(jac0))
+    else:
+        lam0 = jnp.asarray(multipliers0, dtype)
+    z0 = jax.lax.stop_gradient(jnp.concatenate([x_flat, lam0]))
+
+    inputs = (objective_flat, constraints_flat, solver, z0, args, n, max_steps, start_ok)
+    z, (result, stats) = optx.internal.implicit_jvp(
+        _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
+    )
+    x, lam = z[:n], z[n:]
+    value = objective_flat(x, args)
+
+    # Diagnostics: nondifferentiable.
+    xs, lams = jax.lax.stop_gradient((x, lam))
+    residual = kkt_residual(objective_flat, constraints_flat, jnp.concatenate([xs, lams]), args, n)
+    if k == 0:
+        project = lambda v: v
+    else:
+        jac = constraint_jacobian(constraints_flat, xs, args)
+        factors = gram_factors(jac)
+        project = tangent_projector(jac, factors)
+        redundant = factors[2]
+        result = RESULTS.where(
+            redundant
+            & ((result == RESULTS.successful) | (result == RESULTS.singular_kkt)),
+            RESULTS.redundant_constraints,
+            result,
+        )
+
+    def grad_star(x_):
+        g = jax.grad(objective_flat)(x_, args)
+        if k == 0:
+            return g
+        return g + jax.vjp(lambda y: constraints_flat(y, args), x_)[1](lams)[0]
+
+    hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
+    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
+    kind = _classify(extremes, n, k, dtype)
+
+    stats = {
+        **stats,
+        "max_steps": max_steps,
+        "reduced_hessian_eigenvalues": extremes,
+        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
+    }
+    sol = Extremum(
+        x=unravel(x), multipliers=lam, value=value, kind=kind, result=result, stats=stats
+    )
+    if throw:
+        sol = result.error_if(sol, result != RESULTS.successful)
+    return sol
+
+
+def _classify(extremes: Float[Array, "2"], n: int, k: int, dtype) -> EXTREMUM:
+    if n == k:
+        return EXTREMUM.isolated
+    lo, hi = extremes[0], extremes[1]
+    tol = jnp.sqrt(jnp.finfo(dtype).eps) * jnp.maximum(
+        1.0, jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+    )
+    return EXTREMUM.where(
+        lo > tol,
+        EXTREMUM.minimum,
+        EXTREMUM.where(
+            hi < -tol,
+            EXTREMUM.maximum,
+            EXTREMUM.where((lo < -tol) & (hi > tol), EXTREMUM.saddle, EXTREMUM.degenerate),
+        ),
+    )
+
+
+def _inexact_asarray(x):
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jnp.result_type(float))
+    return x
+

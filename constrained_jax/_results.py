@@ -1,0 +1,43 @@
+"""Status codes of every solve in the library.
+
+`RESULTS` extends `diffrax.RESULTS` (which extends `optimistix.RESULTS`, which extends
+`lineax.RESULTS`), so that a status coming from any of those libraries can be
+promoted into ours with `RESULTS.promote(...)` and reported with the same machinery.
+Each member's value is the message the user reads when `throw=True` raises.
+"""
+
+import diffrax
+
+
+class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    successful = ""
+    invalid_input = (
+        "The initial guess or the parameters `args` contain NaN or inf. Check the "
+        "inputs: every leaf of `x0`, `multipliers0` and `args` must be finite."
+    )
+    singular_kkt = (
+        "The KKT matrix [[H, J^T], [J, 0]] is singular (H is the Hessian of "
+        "F* = F + lambda.G, J the constraint Jacobian). The stationary point is "
+        "degenerate, or F is flat along the constraint surface near the iterate. Try a "
+        "different starting point `x0`, or check that the problem has an isolated "
+        "stationary point."
+    )
+    redundant_constraints = (
+        "The constraint Jacobian dG/dx is rank-deficient: some constraints are "
+        "redundant (linearly dependent on the others) or their gradients vanish at "
+        "the solution (e.g. G = g(x)**2). The multipliers are then not unique. Remove "
+        "the dependent constraints, or write each constraint so that its gradient is "
+        "nonzero where it holds."
+    )
+    line_search_failed = (
+        "The line search on the KKT residual could not make progress: the iterate is "
+        "far from any stationary point of F + lambda.G, or has reached a point where "
+        "the residual has a local minimum that is not a solution. Try a different "
+        "starting point `x0` (and `multipliers0`)."
+    )
+    linear_solve_failed = (
+        "The linear solve for the Newton step failed (the Krylov method did not "
+        "converge within its `max_steps`, or produced non-finite values). Increase "
+        "the linear solver's `max_steps`, loosen its tolerance, or use `DenseLU()` "
+        "when the problem is small enough to form the KKT matrix."
+    )

@@ -1,0 +1,6 @@
+"""Built-in scenes: each module holds one problem from the lecture, as the lecture
+writes it (the function or Lagrangian, the constraints, the closed-form answer), and a
+`solve(...)` that runs it with the library.
+"""
+
+from . import cylinder_volume as cylinder_volume
