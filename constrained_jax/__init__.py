@@ -8,9 +8,9 @@ import importlib.metadata
 
 from . import scenes as scenes
 from ._extremize import (
+    extremize as extremize,
     EXTREMUM as EXTREMUM,
     Extremum as Extremum,
-    extremize as extremize,
 )
 from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
 from ._linalg import DenseLU as DenseLU, MINRES as MINRES

@@ -118,8 +118,8 @@ def _check_structure(objective, constraints, x_flat, args, multipliers0):
             )
         if k > n:
             raise ValueError(
-                f"There are more constraints (k = {k}) than unknowns (n = {n}): at most "
-                f"n of them can be independent, so the multipliers are not determined. "
+                f"There are more constraints (k = {k}) than unknowns (n = {n}): at "
+                f"most n of them can be independent, so the multipliers are not determined. "
                 "Remove the redundant constraints."
             )
     if multipliers0 is not None and jnp.shape(multipliers0) != (k,):
@@ -154,7 +154,7 @@ def extremize(
     max_steps: int = 256,
     throw: bool = True,
 ) -> Extremum:
-    """Find a stationary point of `F(x)` subject to `G(x) = 0` with Lagrange multipliers.
+    """Find a stationary point of `F(x)` subject to `G(x) = 0` (Lagrange multipliers).
 
     Solves the `n + k` equations
 
@@ -194,6 +194,7 @@ def extremize(
         system converges to nearby minima, maxima and saddles alike. Check `kind`.
     """
     args = as_traced_args(args)
+    x0 = jtu.tree_map(_inexact_asarray, x0)
     return _extremize(
         objective,
         x0,
@@ -207,7 +208,9 @@ def extremize(
 
 
 @eqx.filter_jit
-def _extremize(objective, x0, args, constraints, solver, multipliers0, max_steps, throw):
+def _extremize(
+    objective, x0, args, constraints, solver, multipliers0, max_steps, throw
+):
     if not isinstance(solver, AbstractKKTSolver):
         raise ValueError(
             f"`solver` must be a constrained_jax solver such as `cjax.Newton()`, got "
@@ -224,14 +227,17 @@ def _extremize(objective, x0, args, constraints, solver, multipliers0, max_steps
         raise ValueError("`x0` has no arrays in it: pass the starting point.")
     for leaf in leaves:
         if not jnp.issubdtype(jnp.result_type(leaf), jnp.number):
-            raise ValueError(f"`x0` must hold numbers, got dtype {jnp.result_type(leaf)}.")
-    x0 = jtu.tree_map(_inexact_asarray, x0)
+            raise ValueError(
+                f"`x0` must hold numbers, got dtype {jnp.result_type(leaf)}."
+            )
     x_flat, unravel = jfu.ravel_pytree(x0)
     objective_flat = lambda x, a: objective(unravel(x), a)
     constraints_flat = (
         None if constraints is None else _flat_constraints(constraints, unravel)
     )
-    n, k = _check_structure(objective_flat, constraints_flat, x_flat, args, multipliers0)
+    n, k = _check_structure(
+        objective_flat, constraints_flat, x_flat, args, multipliers0
+    )
     dtype = x_flat.dtype
 
     objective_flat = eqx.filter_closure_convert(objective_flat, x_flat, args)
@@ -250,7 +256,16 @@ def _extremize(objective, x0, args, constraints, solver, multipliers0, max_steps
         lam0 = jnp.asarray(multipliers0, dtype)
     z0 = jax.lax.stop_gradient(jnp.concatenate([x_flat, lam0]))
 
-    inputs = (objective_flat, constraints_flat, solver, z0, args, n, max_steps, start_ok)
+    inputs = (
+        objective_flat,
+        constraints_flat,
+        solver,
+        z0,
+        args,
+        n,
+        max_steps,
+        start_ok,
+    )
     z, (result, stats) = optx.internal.implicit_jvp(
         _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
     )
@@ -259,7 +274,9 @@ def _extremize(objective, x0, args, constraints, solver, multipliers0, max_steps
 
     # Diagnostics: nondifferentiable.
     xs, lams = jax.lax.stop_gradient((x, lam))
-    residual = kkt_residual(objective_flat, constraints_flat, jnp.concatenate([xs, lams]), args, n)
+    residual = kkt_residual(
+        objective_flat, constraints_flat, jnp.concatenate([xs, lams]), args, n
+    )
     if k == 0:
         project = lambda v: v
     else:
@@ -291,7 +308,12 @@ def _extremize(objective, x0, args, constraints, solver, multipliers0, max_steps
         "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
     }
     sol = Extremum(
-        x=unravel(x), multipliers=lam, value=value, kind=kind, result=result, stats=stats
+        x=unravel(x),
+        multipliers=lam,
+        value=value,
+        kind=kind,
+        result=result,
+        stats=stats,
     )
     if throw:
         sol = result.error_if(sol, result != RESULTS.successful)
@@ -311,14 +333,16 @@ def _classify(extremes: Float[Array, "2"], n: int, k: int, dtype) -> EXTREMUM:
         EXTREMUM.where(
             hi < -tol,
             EXTREMUM.maximum,
-            EXTREMUM.where((lo < -tol) & (hi > tol), EXTREMUM.saddle, EXTREMUM.degenerate),
+            EXTREMUM.where(
+                (lo < -tol) & (hi > tol), EXTREMUM.saddle, EXTREMUM.degenerate
+            ),
         ),
     )
 
 
 def _inexact_asarray(x):
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.inexact):
-        x = x.astype(jnp.result_type(float))
-    return x
-
+    """A strongly typed floating array: weak types would recompile on every change."""
+    dtype = jnp.result_type(x)
+    if not jnp.issubdtype(dtype, jnp.inexact):
+        dtype = jnp.result_type(float)
+    return jnp.asarray(x, dtype=dtype)

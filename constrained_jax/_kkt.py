@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from ._linalg import DenseLU, dense_factor, dense_solve
+from ._linalg import dense_factor, dense_solve, DenseLU
 from ._results import RESULTS
 
 
@@ -121,9 +121,9 @@ def reduced_hessian_extremes(
         w = project(hvp(project(vj)))
         alpha = jnp.dot(w, vj)
         # Full reorthogonalisation (twice is enough) against the basis so far.
-        mask = (jnp.arange(m) <= j)[:, None]
+        active = jnp.where((jnp.arange(m) <= j)[:, None], basis, 0.0)
         for _ in range(2):
-            w = w - (mask * basis).T @ ((mask * basis) @ w)
+            w = w - active.T @ (active @ w)
         w = project(w)
         beta = jnp.linalg.norm(w)
         scale = jnp.maximum(jnp.max(jnp.abs(alphas)), jnp.abs(alpha))
@@ -307,9 +307,7 @@ class Newton(AbstractKKTSolver):
             done = converged | (result != RESULTS.successful)
             return z_new, step + 1, result, done
 
-        init_result = RESULTS.where(
-            start_ok, RESULTS.successful, RESULTS.invalid_input
-        )
+        init_result = RESULTS.where(start_ok, RESULTS.successful, RESULTS.invalid_input)
         init = (z0, jnp.array(0), init_result, jnp.invert(start_ok))
         z, num_steps, result, done = lax.while_loop(cond, body, init)
         result = RESULTS.where(

@@ -115,7 +115,9 @@ def dense_solve(factors, b: Float[Array, " m"], unroll_max: int) -> Float[Array,
     if m <= unroll_max:
         x = lu_solve_unrolled(safe_lu, perm, b)
     else:
-        y = jsp.linalg.solve_triangular(safe_lu, b[perm], lower=True, unit_diagonal=True)
+        y = jsp.linalg.solve_triangular(
+            safe_lu, b[perm], lower=True, unit_diagonal=True
+        )
         x = jsp.linalg.solve_triangular(safe_lu, y, lower=False)
     return jnp.where(singular, 0.0, x)
 
@@ -301,15 +303,44 @@ def minres(matvec, b: Float[Array, " m"], *, rtol, atol, max_steps: int):
         x = x + phi * w
         # beta == 0: the Krylov space is invariant and x is exact.
         done = beta <= eps * beta1
-        return (itn + 1, x, r1, r2, y, w, w2, oldb, beta, dbar, epsln, cs, sn,
-                phibar, done)
+        return (
+            itn + 1,
+            x,
+            r1,
+            r2,
+            y,
+            w,
+            w2,
+            oldb,
+            beta,
+            dbar,
+            epsln,
+            cs,
+            sn,
+            phibar,
+            done,
+        )
 
     one = jnp.ones((), dtype)
     zero = jnp.zeros((), dtype)
-    init = (jnp.array(0), zero_vec, b, b, b, zero_vec, zero_vec, zero, beta1, zero,
-            zero, -one, zero, beta1, beta1 == 0)
+    init = (
+        jnp.array(0),
+        zero_vec,
+        b,
+        b,
+        b,
+        zero_vec,
+        zero_vec,
+        zero,
+        beta1,
+        zero,
+        zero,
+        -one,
+        zero,
+        beta1,
+        beta1 == 0,
+    )
     out = lax.while_loop(cond, body, init)
     itn, x, phibar, done = out[0], out[1], out[13], out[14]
     converged = done | (phibar <= tol)
     return x, itn, converged
-

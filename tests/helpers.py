@@ -1,0 +1,50 @@
+"""Shared test helpers: tree comparison, finite differences, trace counting."""
+
+import functools as ft
+
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+
+def tree_allclose(x, y, *, rtol=1e-10, atol=1e-12) -> bool:
+    """Same structure and every leaf close (NaNs never close)."""
+    if jtu.tree_structure(x) != jtu.tree_structure(y):
+        return False
+    return all(
+        np.shape(a) == np.shape(b) and np.allclose(a, b, rtol=rtol, atol=atol)
+        for a, b in zip(jtu.tree_leaves(x), jtu.tree_leaves(y), strict=True)
+    )
+
+
+def finite_difference_grad(fn, x, *, rel_step=1e-6):
+    """Central-difference gradient of a scalar `fn` at the array `x` (float64).
+
+    The step is relative to each component (absolute for zero components), so the
+    truncation error is O(step^2) and the round-off error O(eps / step).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    grad = np.zeros_like(x)
+    flat = x.reshape(-1)
+    for i in range(flat.size):
+        h = rel_step * max(abs(flat[i]), 1.0)
+        up, down = flat.copy(), flat.copy()
+        up[i] += h
+        down[i] -= h
+        f_up = float(fn(jnp.asarray(up.reshape(x.shape))))
+        f_down = float(fn(jnp.asarray(down.reshape(x.shape))))
+        grad.reshape(-1)[i] = (f_up - f_down) / (2 * h)
+    return grad
+
+
+class TraceCounter:
+    """Wraps a function and counts how often JAX traces it (i.e. compiles anew)."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.count = 0
+        ft.update_wrapper(self, fn)
+
+    def __call__(self, *args, **kwargs):
+        self.count += 1
+        return self.fn(*args, **kwargs)
