@@ -119,8 +119,8 @@ def _check_structure(objective, constraints, x_flat, args, multipliers0):
         if k > n:
             raise ValueError(
                 f"There are more constraints (k = {k}) than unknowns (n = {n}): at "
-                f"most n of them can be independent, so the multipliers are not determined. "
-                "Remove the redundant constraints."
+                "most n of them can be independent, so the multipliers are not "
+                "determined. Remove the redundant constraints."
             )
     if multipliers0 is not None and jnp.shape(multipliers0) != (k,):
         raise ValueError(
