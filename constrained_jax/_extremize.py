@@ -67,6 +67,15 @@ class Extremum(eqx.Module):
     - `stats`: `num_steps`, `max_steps`, the extreme eigenvalues of the reduced
         Hessian (`reduced_hessian_eigenvalues`, `[min, max]`) and the final KKT
         residual (`kkt_residual`, root mean square).
+
+    !!! note
+
+        `kind` is judged from the smallest and largest eigenvalue `mu` of the reduced
+        Hessian `Z^T H Z` (`Z` an orthonormal basis of `ker J`), computed by Lanczos:
+        exactly (to round-off) when `n - k <= 64`, as extreme Ritz values otherwise.
+        An eigenvalue counts as zero when `|mu| <= sqrt(eps) max(1, |mu_min|,
+        |mu_max|)`, an absolute floor for tiny Hessians and relative otherwise. It is
+        meaningful only when `result` is successful.
     """
 
     x: X
@@ -292,10 +301,9 @@ def _extremize(
         )
 
     def grad_star(x_):
-        g = jax.grad(objective_flat)(x_, args)
-        if k == 0:
-            return g
-        return g + jax.vjp(lambda y: constraints_flat(y, args), x_)[1](lams)[0]
+        """grad_x F*(x, lambda) at fixed lambda: the first n KKT residuals."""
+        z_ = jnp.concatenate([x_, lams])
+        return kkt_residual(objective_flat, constraints_flat, z_, args, n)[:n]
 
     hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
     extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
