@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += new
         tolerance.update({row.scene: tol for row in new})
     ok = _print_table(rows, tolerance)
-    print("(time: wall clock per scene; the first solve of a scene includes compilation)")
+    print("(time: wall clock per scene; a first solve includes compilation)")
     print("\nall checks passed" if ok else "\nSOME CHECKS FAILED")
     return 0 if ok else 1
 

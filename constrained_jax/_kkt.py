@@ -121,9 +121,9 @@ def reduced_hessian_extremes(
         w = project(hvp(project(vj)))
         alpha = jnp.dot(w, vj)
         # Full reorthogonalisation (twice is enough) against the basis so far.
-        active = jnp.where((jnp.arange(m) <= j)[:, None], basis, 0.0)
+        # Rows of `basis` past j are still zero, so no masking is needed.
         for _ in range(2):
-            w = w - active.T @ (active @ w)
+            w = w - basis.T @ (basis @ w)
         w = project(w)
         beta = jnp.linalg.norm(w)
         scale = jnp.maximum(jnp.max(jnp.abs(alphas)), jnp.abs(alpha))
@@ -144,6 +144,8 @@ def reduced_hessian_extremes(
     basis, alphas, betas, _ = lax.fori_loop(
         0, m, body, (basis, alphas, betas, jnp.array(False))
     )
+    if m == 1:
+        return jnp.stack([alphas[0], alphas[0]])
     off = betas[: m - 1]
     tri = jnp.diag(alphas) + jnp.diag(off, 1) + jnp.diag(off, -1)
     eigs = jnp.linalg.eigvalsh(tri)
