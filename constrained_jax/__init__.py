@@ -7,6 +7,11 @@ Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-p
 import importlib.metadata
 
 from . import scenes as scenes
+from ._constraints import (
+    AbstractConstraint as AbstractConstraint,
+    Holonomic as Holonomic,
+    Pfaffian as Pfaffian,
+)
 from ._extremize import (
     extremize as extremize,
     EXTREMUM as EXTREMUM,
@@ -15,6 +20,7 @@ from ._extremize import (
 from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
 from ._linalg import DenseLU as DenseLU, MINRES as MINRES
 from ._results import RESULTS as RESULTS
+from ._system import LagrangianSystem as LagrangianSystem
 
 
 __version__ = importlib.metadata.version("constrained_jax")

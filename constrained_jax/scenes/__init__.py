@@ -3,4 +3,8 @@ writes it (the function or Lagrangian, the constraints, the closed-form answer),
 `solve(...)` that runs it with the library.
 """
 
-from . import cylinder_volume as cylinder_volume
+from . import (
+    cylinder_volume as cylinder_volume,
+    pendulum as pendulum,
+    two_cylinders as two_cylinders,
+)

@@ -1,0 +1,133 @@
+"""Constraints of a mechanical system, in the lecture's differential (Pfaffian) form.
+
+Every constraint is written at the velocity level as
+
+    sum_sigma g_{j sigma}(q, t) qdot_sigma + h_j(q, t) = 0,        j = 1..k,
+
+i.e. `A(q, t) qdot + a(q, t) = 0`. A holonomic constraint `G_j(q, t) = 0` has
+`g_{j sigma} = dG_j/dq_sigma` and `h_j = dG_j/dt`. Differentiating once more along the
+motion gives the acceleration-level form used by the equations of motion,
+
+    A qddot + (Adot qdot + adot) = 0,
+
+where `Adot qdot + adot` is the derivative of `A qdot + a` along `(qdot, 1)` in
+`(q, t)` at fixed `qdot`, one forward-mode pass.
+"""
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+
+class AbstractConstraint(eqx.Module):
+    """A set of `k` constraints, holonomic or not, in velocity form `A qdot + a = 0`."""
+
+    @abc.abstractmethod
+    def velocity_form(
+        self, q: Float[Array, " n"], t: Float[Array, ""], args: PyTree
+    ) -> tuple[Float[Array, "k n"], Float[Array, " k"]]:
+        """`(A, a)`: the coefficients `g_{j sigma}` and `h_j` at `(q, t)`."""
+
+    @abc.abstractmethod
+    def num_constraints(self, n: int, args: PyTree) -> int:
+        """`k`, found by shape evaluation (no FLOPs)."""
+
+    def velocity_residual(self, q, qd, t, args) -> Float[Array, " k"]:
+        """`A qdot + a`: zero on admissible motions."""
+        jac, a = self.velocity_form(q, t, args)
+        return jac @ qd + a
+
+    def acceleration_bias(self, q, qd, t, args) -> Float[Array, " k"]:
+        """`Adot qdot + adot`, so that the constraint at acceleration level reads
+        `A qddot + bias = 0`."""
+        fn = lambda q_, t_: self.velocity_residual(q_, qd, t_, args)
+        return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
+
+
+class Holonomic(AbstractConstraint):
+    """Holonomic constraints `G(q, t, args) = 0`, shape `(k,)` (a scalar is `k = 1`).
+
+    Their velocity form has `g = dG/dq`, `h = dG/dt` (by autodiff); they can also be
+    enforced at the position level (projection, stabilization), and their violation
+    `G` is reported.
+    """
+
+    fn: Callable
+
+    def position_residual(self, q, t, args) -> Float[Array, " k"]:
+        """`G(q, t)`."""
+        return jnp.atleast_1d(self.fn(q, t, args))
+
+    def velocity_form(self, q, t, args):
+        fn = lambda q_, t_: self.position_residual(q_, t_, args)
+        jac_q, jac_t = jax.jacfwd(fn, argnums=(0, 1))(q, t)
+        return jac_q, jac_t
+
+    def velocity_residual(self, q, qd, t, args):
+        # One forward pass instead of the Jacobian: dG/dq qdot + dG/dt.
+        fn = lambda q_, t_: self.position_residual(q_, t_, args)
+        return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
+
+    def num_constraints(self, n, args):
+        q = jax.ShapeDtypeStruct((n,), jnp.result_type(float))
+        t = jax.ShapeDtypeStruct((), jnp.result_type(float))
+        out = jax.eval_shape(lambda q_, t_: self.fn(q_, t_, args), q, t)
+        return _check_shape("Holonomic", "G(q, t, args)", out, n, ndim=(0, 1))
+
+
+class Pfaffian(AbstractConstraint):
+    """Constraints in the lecture's differential form
+    `sum_sigma g_{j sigma} dq_sigma + h_j dt = 0`.
+
+    `g(q, t, args)` has shape `(k, n)`; `h(q, t, args)` shape `(k,)`, or `None` for
+    `h = 0` (scleronomic). Holonomic or not: use `constrained_jax.is_exact` to test
+    whether they integrate to `G(q, t) = 0`.
+    """
+
+    g: Callable
+    h: Callable | None = None
+
+    def velocity_form(self, q, t, args):
+        jac = self.g(q, t, args)
+        if self.h is None:
+            a = jnp.zeros(jac.shape[0], jac.dtype)
+        else:
+            a = self.h(q, t, args)
+        return jac, a
+
+    def num_constraints(self, n, args):
+        q = jax.ShapeDtypeStruct((n,), jnp.result_type(float))
+        t = jax.ShapeDtypeStruct((), jnp.result_type(float))
+        out = jax.eval_shape(lambda q_, t_: self.g(q_, t_, args), q, t)
+        if not isinstance(out, jax.ShapeDtypeStruct) or out.ndim != 2:
+            raise ValueError(
+                "Pfaffian g(q, t, args) must return an array of shape (k, n), one row "
+                f"per constraint; got {getattr(out, 'shape', type(out).__name__)}."
+            )
+        if out.shape[1] != n:
+            raise ValueError(
+                f"Pfaffian g(q, t, args) has {out.shape[1]} columns but there are "
+                f"n = {n} coordinates: g must have shape (k, n)."
+            )
+        k = out.shape[0]
+        if self.h is not None:
+            h_out = jax.eval_shape(lambda q_, t_: self.h(q_, t_, args), q, t)
+            if getattr(h_out, "shape", None) != (k,):
+                raise ValueError(
+                    f"Pfaffian h(q, t, args) must return shape (k,) = ({k},), got "
+                    f"{getattr(h_out, 'shape', type(h_out).__name__)}."
+                )
+        return k
+
+
+def _check_shape(kind, signature, out, n, ndim):
+    if not isinstance(out, jax.ShapeDtypeStruct) or out.ndim not in ndim:
+        raise ValueError(
+            f"{kind}: {signature} must return an array of shape (k,) (a scalar for a "
+            f"single constraint); got {getattr(out, 'shape', type(out).__name__)}."
+        )
+    return 1 if out.ndim == 0 else out.shape[0]

@@ -1,0 +1,237 @@
+"""Constrained Lagrangian mechanics: the equations of motion and the multipliers.
+
+For a Lagrangian `L(q, qdot, t)` with constraints `A(q, t) qdot + a(q, t) = 0` (see
+`_constraints.py`) and generalised forces `Q(q, qdot, t)`, the lecture's equations
+
+    d/dt (dL/dqdot_sigma) - dL/dq_sigma = sum_j lambda_j g_{j sigma} + Q_sigma
+
+expand, with `M = d^2 L / dqdot^2` and `c = (dp/dq) qdot + dp/dt - dL/dq`
+(`p = dL/dqdot`), into the saddle-point system
+
+    [[M, -A^T], [A, 0]] [qddot; lambda] = [Q - c; -(Adot qdot + adot)].
+
+`M` may be singular (a massless direction) as long as the KKT matrix is not, i.e. `M`
+is positive definite on the null space of `A`. The force of constraint is
+`Q^c = A^T lambda`.
+"""
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._constraints import AbstractConstraint, Holonomic
+from ._linalg import dense_factor, dense_solve
+
+
+_UNROLL_MAX = 12
+
+
+class LagrangianSystem(eqx.Module):
+    """A mechanical system: a Lagrangian, constraints and generalised forces.
+
+    **Arguments:**
+
+    - `lagrangian`: `L(q, qd, t, args) -> scalar`, any JAX function (not only `T - V`
+        with a constant mass matrix).
+    - `constraints`: a sequence of [`constrained_jax.Holonomic`][] and
+        [`constrained_jax.Pfaffian`][] objects (or a single one). Their rows are stacked
+        in the order given; so are the multipliers.
+    - `forces`: `Q(q, qd, t, args) -> (n,)`, generalised non-conservative forces, or
+        `None`.
+
+    Coordinates `q` are arrays of shape `(n,)`; `t` is a scalar.
+    """
+
+    lagrangian: Callable
+    constraints: tuple[AbstractConstraint, ...] = ()
+    forces: Callable | None = None
+
+    def __init__(
+        self,
+        lagrangian: Callable,
+        constraints: AbstractConstraint | Sequence[AbstractConstraint] = (),
+        forces: Callable | None = None,
+    ):
+        if not callable(lagrangian):
+            raise ValueError("`lagrangian` must be a callable L(q, qd, t, args).")
+        if isinstance(constraints, AbstractConstraint):
+            constraints = (constraints,)
+        constraints = tuple(constraints)
+        for c in constraints:
+            if not isinstance(c, AbstractConstraint):
+                raise ValueError(
+                    "Each constraint must be a `cjax.Holonomic(G)` or "
+                    f"`cjax.Pfaffian(g, h)`, got {type(c).__name__}. Wrap a function "
+                    "G(q, t, args) as `cjax.Holonomic(G)`."
+                )
+        if forces is not None and not callable(forces):
+            raise ValueError("`forces` must be a callable Q(q, qd, t, args) or None.")
+        self.lagrangian = lagrangian
+        self.constraints = constraints
+        self.forces = forces
+
+    # ------------------------------------------------------------------ structure
+
+    def check(self, q, qd, t, args) -> tuple[int, int]:
+        """Validate shapes at trace time; return `(n, k)`."""
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        if q.ndim != 1 or qd.shape != q.shape:
+            raise ValueError(
+                "Coordinates q and velocities qd must be arrays of the same shape "
+                f"(n,); got {q.shape} and {qd.shape}."
+            )
+        n = q.shape[0]
+        out = jax.eval_shape(self.lagrangian, q, qd, t, args)
+        if not isinstance(out, jax.ShapeDtypeStruct) or out.shape != ():
+            raise ValueError(
+                "The Lagrangian L(q, qd, t, args) must return a scalar, got "
+                f"{getattr(out, 'shape', type(out).__name__)}. Sum kinetic and "
+                "potential energies into one number."
+            )
+        k = sum(c.num_constraints(n, args) for c in self.constraints)
+        if k > n:
+            raise ValueError(
+                f"There are more constraints (k = {k}) than coordinates (n = {n}); at "
+                "most n can be independent. Remove the redundant ones."
+            )
+        if self.forces is not None:
+            f_out = jax.eval_shape(self.forces, q, qd, t, args)
+            if getattr(f_out, "shape", None) != (n,):
+                raise ValueError(
+                    f"forces Q(q, qd, t, args) must return shape (n,) = ({n},), got "
+                    f"{getattr(f_out, 'shape', type(f_out).__name__)}."
+                )
+        return n, k
+
+    # ------------------------------------------------------------------ physics
+
+    def momentum(self, q, qd, t, args) -> Float[Array, " n"]:
+        """Generalised momenta `p = dL/dqdot`."""
+        return jax.grad(self.lagrangian, argnums=1)(q, qd, t, args)
+
+    def mass_matrix(self, q, qd, t, args) -> Float[Array, "n n"]:
+        """`M = d^2 L / dqdot^2` (may be singular; see the module docstring)."""
+        return jax.jacfwd(self.momentum, argnums=1)(q, qd, t, args)
+
+    def energy(self, q, qd, t, args) -> Float[Array, ""]:
+        """The energy function (Jacobi integral) `h = qdot . dL/dqdot - L`.
+
+        Conserved when `L`, the constraints and the forces do not depend on `t` and
+        the forces do no work (ideal constraints do none).
+        """
+        return jnp.dot(qd, self.momentum(q, qd, t, args)) - self.lagrangian(
+            q, qd, t, args
+        )
+
+    def constraint_jacobian(self, q, t, args) -> Float[Array, "k n"]:
+        """`A = (g_{j sigma})`, the stacked rows of every constraint."""
+        n = q.shape[0]
+        if not self.constraints:
+            return jnp.zeros((0, n), q.dtype)
+        return jnp.concatenate(
+            [c.velocity_form(q, t, args)[0] for c in self.constraints]
+        )
+
+    def velocity_violation(self, q, qd, t, args) -> Float[Array, " k"]:
+        """`A qdot + a` for every constraint (zero on admissible motions)."""
+        if not self.constraints:
+            return jnp.zeros((0,), q.dtype)
+        return jnp.concatenate(
+            [c.velocity_residual(q, qd, t, args) for c in self.constraints]
+        )
+
+    def position_violation(self, q, t, args) -> Float[Array, " k_holonomic"]:
+        """`G(q, t)` for the holonomic constraints (nonholonomic ones have none)."""
+        parts = [
+            c.position_residual(q, t, args)
+            for c in self.constraints
+            if isinstance(c, Holonomic)
+        ]
+        if not parts:
+            return jnp.zeros((0,), q.dtype)
+        return jnp.concatenate(parts)
+
+    def acceleration_bias(self, q, qd, t, args) -> Float[Array, " k"]:
+        """`Adot qdot + adot`: constraints at acceleration level read
+        `A qddot + bias = 0`."""
+        if not self.constraints:
+            return jnp.zeros((0,), q.dtype)
+        return jnp.concatenate(
+            [c.acceleration_bias(q, qd, t, args) for c in self.constraints]
+        )
+
+    def _equations(self, q, qd, t, args):
+        """`M`, the right-hand side `Q - c`, `A` and the acceleration bias."""
+        lag = self.lagrangian
+        grad_q = jax.grad(lag, argnums=0)(q, qd, t, args)
+        mass = self.mass_matrix(q, qd, t, args)
+        # (dp/dq) qdot + dp/dt, one forward pass at fixed qdot.
+        p_along = lambda q_, t_: self.momentum(q_, qd, t_, args)
+        _, dp = jax.jvp(p_along, (q, t), (qd, jnp.ones_like(t)))
+        rhs = grad_q - dp
+        if self.forces is not None:
+            rhs = rhs + self.forces(q, qd, t, args)
+        jac = self.constraint_jacobian(q, t, args)
+        bias = self.acceleration_bias(q, qd, t, args)
+        return mass, rhs, jac, bias
+
+    def solve_accelerations(
+        self, q, qd, t, args
+    ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
+        """`(qddot, lambda, singular)`: the KKT solve without raising.
+
+        `singular` flags a singular KKT matrix (then `qddot`, `lambda` are zeros).
+        Systems with `n + k <= 12` are solved by unrolled elimination that XLA fuses
+        (on CPU a LAPACK call on such a small matrix costs more than its arithmetic).
+        """
+        t = jnp.asarray(t, q.dtype)
+        mass, rhs, jac, bias = self._equations(q, qd, t, args)
+        n, k = mass.shape[0], jac.shape[0]
+        if k == 0:
+            matrix, vector = mass, rhs
+        else:
+            matrix = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k), q.dtype)]])
+            vector = jnp.concatenate([rhs, -bias])
+        factors = dense_factor(matrix, _UNROLL_MAX)
+        sol = dense_solve(factors, vector, _UNROLL_MAX)
+        return sol[:n], sol[n:], factors[2]
+
+    def accelerations(self, q, qd, t, args=None):
+        """Solve the equations of motion for `(qddot, multipliers)`.
+
+        `[[M, -A^T], [A, 0]] [qddot; lambda] = [Q - c; -(Adot qdot + adot)]`, in the
+        convention `d/dt(dL/dqdot) - dL/dq = A^T lambda + Q`.
+
+        Raises (at run time, also under `jit`) if the KKT matrix is singular: `L` is
+        not regular in a velocity direction the constraints leave free, or the
+        constraints are redundant.
+        """
+        q, qd = _as_float(q), _as_float(qd)
+        self.check(q, qd, t, args)
+        qdd, lam, singular = self.solve_accelerations(q, qd, t, args)
+        qdd, lam = eqx.error_if(
+            (qdd, lam),
+            singular,
+            "The KKT matrix [[M, -A^T], [A, 0]] is singular: the Lagrangian is not "
+            "regular in a velocity direction that the constraints leave free (M is "
+            "singular on the null space of A), or the constraints are redundant. "
+            "Check the mass matrix and remove dependent constraints.",
+        )
+        return qdd, lam
+
+    def constraint_forces(self, q, qd, t, args=None) -> Float[Array, " n"]:
+        """The generalised force of constraint `Q^c = A^T lambda`."""
+        q, qd = _as_float(q), _as_float(qd)
+        _, lam = self.accelerations(q, qd, t, args)
+        jac = self.constraint_jacobian(q, jnp.asarray(t, q.dtype), args)
+        return jac.T @ lam
+
+
+def _as_float(x) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jnp.result_type(float))
+    return x

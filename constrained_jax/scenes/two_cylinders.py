@@ -1,0 +1,120 @@
+"""A cylinder rolling without slipping on a fixed cylinder (the lecture's example).
+
+Rolling cylinder: mass `M`, moment of inertia `I`, radius `a`; fixed cylinder: radius
+`R`. Coordinates `q = (r, theta1, theta2)`: the distance between the axes, the angle
+of the line of centres from the upward vertical, and the rotation angle of the rolling
+cylinder. The Lagrangian
+
+    L = M (rdot^2 + r^2 theta1dot^2)/2 + I theta2dot^2/2 - M g r cos(theta1)
+
+with the constraints, in the lecture's Pfaffian form, `g = [[1, 0, 0], [0, R+a, -a]]`,
+`h = 0`:
+
+    contact  r = R + a                  (j = 1; lambda_1 = Q_r, the normal force),
+    no slip  R theta1 = a (theta2 - theta1)   (j = 2).
+
+Released from rest at `theta1 = theta0`, with `alpha = I / (M a^2)`:
+
+    theta1dot^2 = 2 g (cos theta0 - cos theta1) / ((1 + alpha)(R + a)),
+    theta1ddot  = g sin(theta1) / ((1 + alpha)(R + a)),
+    Q_r = lambda_1 = M g ((3 + alpha) cos theta1 - 2 cos theta0) / (1 + alpha),
+    lambda_2 = -(I / a^2)(R + a) theta1ddot,
+
+and the normal force vanishes at the detachment angle
+`theta* = arccos(2 cos theta0 / (3 + alpha))`. (Some sources print the formula for
+`theta1dot` without the square and without the factor `1 + alpha`; the above follows
+from energy conservation.)
+
+With `alpha = 0` (`I = 0`) the mass matrix is singular, but the KKT matrix is not: the
+no-slip constraint fixes `theta2`.
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._constraints import Pfaffian
+from .._system import LagrangianSystem
+
+
+def lagrangian(q, qd, t, args) -> Float[Array, ""]:
+    r, theta1 = q[0], q[1]
+    rd, theta1d, theta2d = qd[0], qd[1], qd[2]
+    m, inertia, g = args["M"], args["I"], args["g"]
+    kinetic = 0.5 * m * (rd**2 + r**2 * theta1d**2) + 0.5 * inertia * theta2d**2
+    return kinetic - m * g * r * jnp.cos(theta1)
+
+
+def pfaffian_rows(q, t, args) -> Float[Array, "2 3"]:
+    """The lecture's `g_{j sigma}`: contact `(1, 0, 0)`, no slip `(0, R+a, -a)`."""
+    big_r, a = args["R"], args["a"]
+    zero, one = jnp.zeros_like(a), jnp.ones_like(a)
+    return jnp.stack([jnp.stack([one, zero, zero]), jnp.stack([zero, big_r + a, -a])])
+
+
+def system() -> LagrangianSystem:
+    return LagrangianSystem(lagrangian, constraints=(Pfaffian(pfaffian_rows),))
+
+
+def default_args(M=1.0, alpha=0.5, a=0.3, R=1.0, g=9.81) -> dict:
+    M, a = jnp.asarray(M, float), jnp.asarray(a, float)
+    return {
+        "M": M,
+        "I": jnp.asarray(alpha, float) * M * a**2,
+        "a": a,
+        "R": jnp.asarray(R, float),
+        "g": jnp.asarray(g, float),
+    }
+
+
+def alpha(args):
+    return args["I"] / (args["M"] * args["a"] ** 2)
+
+
+def state(theta1, theta1dot, args):
+    """The attached state at `theta1` (with `theta2 = (1 + R/a) theta1`)."""
+    big_r, a = args["R"], args["a"]
+    ratio = 1 + big_r / a
+    q = jnp.stack([big_r + a, theta1, ratio * theta1])
+    qd = jnp.stack([jnp.zeros_like(theta1dot), theta1dot, ratio * theta1dot])
+    return q, qd
+
+
+def angular_velocity_squared(theta1, theta0, args):
+    """`theta1dot^2 = 2 g (cos theta0 - cos theta1) / ((1 + alpha)(R + a))`."""
+    return (
+        2
+        * args["g"]
+        * (jnp.cos(theta0) - jnp.cos(theta1))
+        / ((1 + alpha(args)) * (args["R"] + args["a"]))
+    )
+
+
+def angular_acceleration(theta1, args):
+    """`theta1ddot = g sin theta1 / ((1 + alpha)(R + a))`."""
+    return args["g"] * jnp.sin(theta1) / ((1 + alpha(args)) * (args["R"] + args["a"]))
+
+
+def normal_force(theta1, theta0, args):
+    """`Q_r = M g ((3 + alpha) cos theta1 - 2 cos theta0) / (1 + alpha)`."""
+    al = alpha(args)
+    return (
+        args["M"]
+        * args["g"]
+        * ((3 + al) * jnp.cos(theta1) - 2 * jnp.cos(theta0))
+        / (1 + al)
+    )
+
+
+def no_slip_multiplier(theta1, args):
+    """`lambda_2 = -(I / a^2)(R + a) theta1ddot`."""
+    return (
+        -args["I"]
+        / args["a"] ** 2
+        * (args["R"] + args["a"])
+        * angular_acceleration(theta1, args)
+    )
+
+
+def detachment_angle(theta0, args):
+    """`theta* = arccos(2 cos theta0 / (3 + alpha))`."""
+    return jnp.arccos(2 * jnp.cos(theta0) / (3 + alpha(args)))
