@@ -20,6 +20,18 @@ from ._extremize import (
 from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
 from ._linalg import DenseLU as DenseLU, MINRES as MINRES
 from ._results import RESULTS as RESULTS
+from ._simulate import (
+    consistent_initial_state as consistent_initial_state,
+    SaveAt as SaveAt,
+    simulate as simulate,
+    Trajectory as Trajectory,
+)
+from ._stabilization import (
+    AbstractStabilization as AbstractStabilization,
+    Baumgarte as Baumgarte,
+    Projection as Projection,
+    Unstabilized as Unstabilized,
+)
 from ._system import LagrangianSystem as LagrangianSystem
 
 

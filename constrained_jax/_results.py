@@ -41,3 +41,14 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "the linear solver's `max_steps`, loosen its tolerance, or use `DenseLU()` "
         "when the problem is small enough to form the KKT matrix."
     )
+    inconsistent_initial_state = (
+        "The initial state (q0, qd0) violates the constraints (G(q0, t0) != 0 or "
+        "A qd0 + a != 0 beyond `consistency_tol`). Project it onto the constraint "
+        "manifold first with `cjax.consistent_initial_state(system, q0, qd0, t0, "
+        "args)`, or fix the initial condition."
+    )
+    singular_dynamics = (
+        "The KKT matrix [[M, -A^T], [A, 0]] of the equations of motion became "
+        "singular during the simulation: the Lagrangian is not regular in a velocity "
+        "direction the constraints leave free, or the constraints became dependent."
+    )

@@ -178,17 +178,35 @@ class LagrangianSystem(eqx.Module):
         bias = self.acceleration_bias(q, qd, t, args)
         return mass, rhs, jac, bias
 
+    def position_rows(self, q, t, args) -> Float[Array, " k"]:
+        """`G_j(q, t)` for holonomic rows and `0` for Pfaffian ones, stacked like the
+        rows of `A`: the position-level residual used by stabilization."""
+        if not self.constraints:
+            return jnp.zeros((0,), q.dtype)
+        parts = []
+        for c in self.constraints:
+            if isinstance(c, Holonomic):
+                parts.append(c.position_residual(q, t, args))
+            else:
+                k = c.num_constraints(q.shape[0], args)
+                parts.append(jnp.zeros((k,), q.dtype))
+        return jnp.concatenate(parts)
+
     def solve_accelerations(
-        self, q, qd, t, args
+        self, q, qd, t, args, bias_correction=None
     ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
         """`(qddot, lambda, singular)`: the KKT solve without raising.
 
         `singular` flags a singular KKT matrix (then `qddot`, `lambda` are zeros).
         Systems with `n + k <= 12` are solved by unrolled elimination that XLA fuses
         (on CPU a LAPACK call on such a small matrix costs more than its arithmetic).
+        `bias_correction` (shape `(k,)`) is added to the acceleration bias, as
+        Baumgarte stabilization does.
         """
         t = jnp.asarray(t, q.dtype)
         mass, rhs, jac, bias = self._equations(q, qd, t, args)
+        if bias_correction is not None:
+            bias = bias + bias_correction
         n, k = mass.shape[0], jac.shape[0]
         if k == 0:
             matrix, vector = mass, rhs

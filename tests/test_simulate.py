@@ -1,0 +1,233 @@
+"""Simulation of constrained systems: closed forms, invariants, drift, convergence."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+from constrained_jax.scenes import pendulum, two_cylinders as cyl2
+
+from .helpers import finite_difference_grad, tree_allclose
+
+
+TIGHT = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+
+
+def _pendulum_run(stabilization, periods=1.0, num_saves=5):
+    @jax.jit
+    def run(theta0, args):
+        q0, qd0 = pendulum.state(theta0, jnp.zeros_like(theta0), args)
+        t1 = periods * pendulum.period(theta0, args)
+        return cjax.simulate(
+            pendulum.system(),
+            (0.0, t1),
+            q0,
+            qd0,
+            args,
+            stabilization=stabilization,
+            stepsize_controller=TIGHT,
+            saveat=cjax.SaveAt(ts=jnp.linspace(0.0, 1.0, num_saves) * t1),
+        )
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def pendulum_runs():
+    return {
+        name: _pendulum_run(stab, periods=10.0, num_saves=11)
+        for name, stab in [
+            ("unstabilized", cjax.Unstabilized()),
+            ("baumgarte", cjax.Baumgarte(alpha=10.0, beta=10.0)),
+            ("projection", cjax.Projection()),
+        ]
+    }
+
+
+@pytest.mark.parametrize("name", ["unstabilized", "baumgarte", "projection"])
+def test_pendulum_period_and_energy(pendulum_runs, name):
+    """After each whole period 4 sqrt(l/g) K(sin(theta0/2)) the pendulum is back at
+    its start; the energy is conserved."""
+    args = pendulum.default_args(l=0.8)
+    theta0 = jnp.asarray(1.2)
+    traj = pendulum_runs[name](theta0, args)
+    assert traj.result == cjax.RESULTS.successful
+    q0, _ = pendulum.state(theta0, 0.0, args)
+    np.testing.assert_allclose(traj.q, np.broadcast_to(q0, traj.q.shape), atol=1e-7)
+    np.testing.assert_allclose(traj.qd, 0.0, atol=1e-6)
+    # Runge-Kutta energy error grows like (local tolerance) x (steps): 1e-10 x ~2000
+    # steps over these 10 periods bounds it by a few 1e-7.
+    np.testing.assert_allclose(traj.energy, traj.energy[0], rtol=1e-6)
+
+
+def test_constraint_drift_per_stabilization(pendulum_runs):
+    """Projection holds G = 0 to round-off; Baumgarte damps the drift that the
+    unstabilized index-1 formulation accumulates."""
+    args = pendulum.default_args(l=0.8)
+    drift = {
+        name: float(jnp.max(jnp.abs(run(jnp.asarray(1.2), args).violation["position"])))
+        for name, run in pendulum_runs.items()
+    }
+    assert drift["projection"] <= 1e-13
+    assert drift["baumgarte"] < drift["unstabilized"]
+    assert drift["unstabilized"] < 1e-6  # drift, not divergence, at this tolerance
+
+
+@pytest.fixture(scope="module")
+def cylinder_run():
+    @jax.jit
+    def run(theta0, args):
+        q0, qd0 = cyl2.state(theta0, jnp.zeros_like(theta0), args)
+        return cjax.simulate(
+            cyl2.system(),
+            (0.0, 0.8),
+            q0,
+            qd0,
+            args,
+            stepsize_controller=TIGHT,
+            saveat=cjax.SaveAt(ts=jnp.linspace(0.0, 0.8, 9)),
+        )
+
+    return run
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.5, 1.0])
+def test_two_cylinders_normal_force_along_trajectory(cylinder_run, alpha):
+    """Q_r(theta1(t)) and theta1dot^2 along the attached phase match the closed forms
+    (alpha = 0: singular mass matrix)."""
+    args = cyl2.default_args(alpha=alpha)
+    theta0 = jnp.asarray(0.3)
+    traj = cylinder_run(theta0, args)
+    theta = traj.q[:, 1]
+    assert float(theta[-1]) > float(theta0) + 0.3  # it really rolled
+    np.testing.assert_allclose(
+        traj.multipliers[:, 0], cyl2.normal_force(theta, theta0, args), atol=1e-7
+    )
+    np.testing.assert_allclose(
+        traj.qd[:, 1] ** 2,
+        cyl2.angular_velocity_squared(theta, theta0, args),
+        atol=1e-8,
+    )
+    # Contact and no slip hold; the force of constraint on r is the normal force.
+    np.testing.assert_allclose(traj.q[:, 0], args["R"] + args["a"], rtol=1e-9)
+    np.testing.assert_allclose(traj.constraint_forces[:, 0], traj.multipliers[:, 0])
+
+
+def test_vmap_matches_loop(cylinder_run):
+    args = cyl2.default_args(alpha=0.5)
+    thetas = jnp.array([0.1, 0.2, 0.3])
+    batched = jax.vmap(lambda th: cylinder_run(th, args))(thetas)
+    for i, th in enumerate(thetas):
+        single = cylinder_run(th, args)
+        assert tree_allclose(batched.q[i], single.q, rtol=1e-12, atol=1e-13)
+        assert tree_allclose(
+            batched.multipliers[i], single.multipliers, rtol=1e-12, atol=1e-13
+        )
+
+
+def test_gradient_wrt_parameters_matches_finite_differences():
+    """d theta1(t) / d alpha through the whole simulation."""
+
+    def final_angle(p):
+        args = cyl2.default_args(alpha=p[0], R=p[1])
+        q0, qd0 = cyl2.state(jnp.asarray(0.3), jnp.asarray(0.0), args)
+        traj = cjax.simulate(
+            cyl2.system(),
+            (0.0, 0.5),
+            q0,
+            qd0,
+            args,
+            stepsize_controller=TIGHT,
+            saveat=cjax.SaveAt(t1=True, multipliers=False),
+        )
+        return traj.q[-1, 1]
+
+    p = jnp.array([0.5, 1.0])
+    grad = jax.grad(final_angle)(p)
+    fd = finite_difference_grad(final_angle, p, rel_step=1e-5)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
+    assert grad[0] < 0  # more rotational inertia rolls off more slowly
+
+
+def test_convergence_order_is_the_solvers():
+    """Fixed steps of Heun's method (order 2): the error at a generic time falls like
+    dt^2 (slope of log error against log dt), against a tight Tsit5 reference.
+    (At a whole period the pendulum is at rest, where a phase error costs only its
+    square: a generic time avoids that superconvergence.)"""
+    args = pendulum.default_args()
+    theta0 = jnp.asarray(0.8)
+    q0, qd0 = pendulum.state(theta0, 0.0, args)
+    t1 = 0.3 * pendulum.period(theta0, args)
+    reference = cjax.simulate(
+        pendulum.system(),
+        (0.0, t1),
+        q0,
+        qd0,
+        args,
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13),
+        saveat=cjax.SaveAt(t1=True),
+    ).q[-1]
+
+    def error(num_steps):
+        traj = cjax.simulate(
+            pendulum.system(),
+            (0.0, t1),
+            q0,
+            qd0,
+            args,
+            solver=diffrax.Heun(),
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=t1 / num_steps,
+            max_steps=num_steps + 1,
+            saveat=cjax.SaveAt(t1=True, multipliers=False, energy=False),
+        )
+        return float(jnp.linalg.norm(traj.q[-1] - reference))
+
+    steps = np.array([50, 100, 200, 400])
+    errors = np.array([error(int(s)) for s in steps])
+    slope = np.polyfit(np.log(1.0 / steps), np.log(errors), 1)[0]
+    assert 1.8 < slope < 2.3, (errors, slope)
+
+
+def test_inconsistent_initial_state():
+    system = pendulum.system()
+    args = pendulum.default_args()
+    q0 = jnp.array([0.3, -0.9])  # |q0| != l
+    qd0 = jnp.array([0.5, 0.2])  # not tangent
+    traj = cjax.simulate(system, (0.0, 0.1), q0, qd0, args, throw=False)
+    assert traj.result == cjax.RESULTS.inconsistent_initial_state
+    with pytest.raises(eqx.EquinoxRuntimeError, match="consistent_initial_state"):
+        cjax.simulate(system, (0.0, 0.1), q0, qd0, args)
+    q0c, qd0c = cjax.consistent_initial_state(system, q0, qd0, 0.0, args)
+    np.testing.assert_allclose(jnp.linalg.norm(q0c), args["l"], rtol=1e-12)
+    np.testing.assert_allclose(jnp.dot(q0c, qd0c), 0.0, atol=1e-12)
+    # The projected state is the closest one: q0c is along q0 (the metric is m I).
+    np.testing.assert_allclose(q0c / jnp.linalg.norm(q0c), q0 / jnp.linalg.norm(q0))
+    traj = cjax.simulate(system, (0.0, 0.1), q0c, qd0c, args)
+    assert traj.result == cjax.RESULTS.successful
+
+
+def test_nan_parameters_and_step_budget():
+    system = pendulum.system()
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+    bad = dict(args, g=jnp.asarray(jnp.nan))
+    traj = cjax.simulate(system, (0.0, 0.1), q0, qd0, bad, throw=False)
+    assert traj.result == cjax.RESULTS.invalid_input
+    traj = cjax.simulate(system, (0.0, 10.0), q0, qd0, args, max_steps=5, throw=False)
+    assert traj.result == cjax.RESULTS.max_steps_reached
+
+
+def test_bad_arguments():
+    system = pendulum.system()
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+    with pytest.raises(ValueError, match="stabilization"):
+        cjax.simulate(system, (0.0, 1.0), q0, qd0, args, stabilization="projection")
+    with pytest.raises(ValueError, match="saves nothing"):
+        cjax.SaveAt()
+    with pytest.raises(ValueError, match="same shape"):
+        cjax.simulate(system, (0.0, 1.0), q0, qd0[:1], args)
