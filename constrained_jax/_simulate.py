@@ -17,9 +17,9 @@ from ._results import RESULTS
 from ._stabilization import (
     AbstractStabilization,
     Baumgarte,
-    Projection,
-    ProjectedSolver,
     project_state,
+    ProjectedSolver,
+    Projection,
     Unstabilized,
 )
 from ._system import LagrangianSystem
