@@ -19,6 +19,12 @@ from ._extremize import (
 )
 from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
 from ._linalg import DenseLU as DenseLU, MINRES as MINRES
+from ._reduce import (
+    Linearization as Linearization,
+    linearize as linearize,
+    reduce as reduce,
+    Reduction as Reduction,
+)
 from ._results import RESULTS as RESULTS
 from ._simulate import (
     consistent_initial_state as consistent_initial_state,

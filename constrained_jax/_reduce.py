@@ -1,0 +1,179 @@
+"""Reducing coordinates where a constraint can be solved, and linearising.
+
+`reduce(system, embedding)`: when the constraints can be solved as `q = phi(s, t)` (for
+the pendulum `(x, y) = l (sin s, -cos s)`; for the two cylinders
+`(r, theta1, theta2) = (R + a, s, (1 + R/a) s)`), the reduced Lagrangian is
+
+    L_s(s, sdot, t) = L(phi(s, t), (dphi/ds) sdot + dphi/dt, t),
+
+with generalised forces `(dphi/ds)^T Q`. The multipliers of the eliminated constraints
+are not lost: as the lecture does for the two cylinders, they follow from the residual
+of the full equations along the reduced motion, `A^T lambda = M qddot + c - Q`.
+
+`linearize(system, q_eq, qd_eq, args)`: the linearised dynamics on the constraint
+manifold about an equilibrium, and its eigenvalues.
+"""
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Complex, Float
+
+from ._constraints import AbstractConstraint, Holonomic
+from ._system import LagrangianSystem
+
+
+class Reduction(eqx.Module):
+    """A system in reduced coordinates `s`, with the way back to the full one.
+
+    **Attributes:**
+
+    - `system`: the [`constrained_jax.LagrangianSystem`][] in `s` (simulate it).
+    - `full`: the original system in `q`.
+    - `embedding`: `phi(s, t, args) -> q`.
+    """
+
+    system: LagrangianSystem
+    full: LagrangianSystem
+    embedding: Callable
+
+    def lift(self, s, sd, t, args=None):
+        """`(q, qdot)` from `(s, sdot)`: `q = phi(s, t)`, `qdot = dphi/ds sdot + dphi/dt`."""
+        t = jnp.asarray(t, jnp.result_type(s))
+        fn = lambda s_, t_: self.embedding(s_, t_, args)
+        return jax.jvp(fn, (s, t), (sd, jnp.ones_like(t)))
+
+    def full_multipliers(self, s, sd, t, args=None) -> Float[Array, " k"]:
+        """The multipliers of the full system along the reduced motion.
+
+        `qddot` comes from the reduced equations lifted by the embedding; then
+        `lambda` solves `A^T lambda = M qddot - (Q - c)` in the least-squares sense
+        (exactly, when the reduced motion satisfies the full equations).
+        """
+        t = jnp.asarray(t, jnp.result_type(s))
+        sdd, _ = self.system.accelerations(s, sd, t, args)
+
+        def q_dot(s_, sd_, t_):
+            return self.lift(s_, sd_, t_, args)[1]
+
+        q, qd = self.lift(s, sd, t, args)
+        # qddot = d/dt (qdot) along (sdot, sddot, 1).
+        _, qdd = jax.jvp(q_dot, (s, sd, t), (sd, sdd, jnp.ones_like(t)))
+        mass, rhs, jac, _ = self.full._equations(q, qd, t, args)
+        residual = mass @ qdd - rhs
+        lam, *_ = jnp.linalg.lstsq(jac.T, residual)
+        return lam
+
+
+def reduce(
+    system: LagrangianSystem,
+    embedding: Callable,
+    constraints: AbstractConstraint | tuple[AbstractConstraint, ...] = (),
+) -> Reduction:
+    """Eliminate constraints by an explicit parametrisation `q = phi(s, t, args)`.
+
+    **Arguments:**
+
+    - `system`: the full [`constrained_jax.LagrangianSystem`][].
+    - `embedding`: `phi(s, t, args) -> q`; must satisfy the constraints it eliminates
+        identically in `s` and `t`.
+    - `constraints`: constraints that remain, written in `s` (e.g. a nonholonomic one
+        that no parametrisation removes).
+
+    **Returns:** a [`constrained_jax.Reduction`][].
+    """
+    if not callable(embedding):
+        raise ValueError("`embedding` must be a callable phi(s, t, args) -> q.")
+
+    def lift(s, sd, t, args):
+        fn = lambda s_, t_: embedding(s_, t_, args)
+        return jax.jvp(fn, (s, t), (sd, jnp.ones_like(t)))
+
+    def lagrangian(s, sd, t, args):
+        q, qd = lift(s, sd, t, args)
+        return system.lagrangian(q, qd, t, args)
+
+    forces = None
+    if system.forces is not None:
+
+        def forces(s, sd, t, args):
+            q, qd = lift(s, sd, t, args)
+            jac = jax.jacfwd(embedding)(s, t, args)
+            return jac.T @ system.forces(q, qd, t, args)
+
+    reduced = LagrangianSystem(lagrangian, constraints, forces)
+    return Reduction(system=reduced, full=system, embedding=embedding)
+
+
+class Linearization(eqx.Module):
+    """Linearised dynamics on the constraint manifold about an equilibrium.
+
+    **Attributes:**
+
+    - `matrix`: `A_lin` with `d/dt (xi, eta) = A_lin (xi, eta)`, where
+        `delta q = position_basis xi` and `delta qdot = velocity_basis eta`.
+    - `eigenvalues`: of `matrix` (growth rates and frequencies).
+    - `position_basis`: orthonormal basis of the admissible position perturbations
+        (the null space of the holonomic constraint Jacobian), shape `(n, n - k_h)`.
+    - `velocity_basis`: of the admissible velocities (null space of `A`), shape
+        `(n, n - k)`.
+    """
+
+    matrix: Float[Array, "m m"]
+    eigenvalues: Complex[Array, " m"]
+    position_basis: Float[Array, "n p"]
+    velocity_basis: Float[Array, "n v"]
+
+
+def _null_space(jac: Float[Array, "k n"]) -> Float[Array, "n m"]:
+    n, k = jac.shape[1], jac.shape[0]
+    if k == 0:
+        return jnp.eye(n, dtype=jac.dtype)
+    _, _, vt = jnp.linalg.svd(jac, full_matrices=True)
+    return vt[k:].T
+
+
+def linearize(system: LagrangianSystem, q_eq, qd_eq, args=None, t=0.0) -> Linearization:
+    """Linearise the constrained dynamics about `(q_eq, qd_eq)` at time `t`.
+
+    Position perturbations are restricted to the tangent space of the holonomic
+    constraints and velocity perturbations to the null space of all constraint rows
+    `A` (assumed of full rank `k`): the spurious zero modes of the index-1 equations
+    (drift off the manifold) are excluded. Non-autonomous systems are linearised at the
+    frozen time `t`.
+    """
+    q_eq = jnp.asarray(q_eq, float)
+    qd_eq = jnp.asarray(qd_eq, float)
+    system.check(q_eq, qd_eq, t, args)
+    t = jnp.asarray(t, q_eq.dtype)
+    holonomic_rows = [
+        jax.jacfwd(c.position_residual)(q_eq, t, args)
+        for c in system.constraints
+        if isinstance(c, Holonomic)
+    ]
+    n = q_eq.shape[0]
+    jac_h = (
+        jnp.concatenate(holonomic_rows)
+        if holonomic_rows
+        else jnp.zeros((0, n), q_eq.dtype)
+    )
+    z_pos = _null_space(jac_h)
+    z_vel = _null_space(system.constraint_jacobian(q_eq, t, args))
+
+    def qdd(q, qd):
+        return system.solve_accelerations(q, qd, t, args)[0]
+
+    d_q, d_qd = jax.jacfwd(qdd, argnums=(0, 1))(q_eq, qd_eq)
+    top = jnp.concatenate(
+        [jnp.zeros((z_pos.shape[1], z_pos.shape[1]), q_eq.dtype), z_pos.T @ z_vel], 1
+    )
+    bottom = jnp.concatenate([z_vel.T @ d_q @ z_pos, z_vel.T @ d_qd @ z_vel], 1)
+    matrix = jnp.concatenate([top, bottom], 0)
+    return Linearization(
+        matrix=matrix,
+        eigenvalues=jnp.linalg.eigvals(matrix),
+        position_basis=z_pos,
+        velocity_basis=z_vel,
+    )

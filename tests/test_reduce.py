@@ -1,0 +1,109 @@
+"""Reduced coordinates agree with the full constrained system; linearisation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+from constrained_jax.scenes import pendulum, two_cylinders as cyl2
+
+
+def _pendulum_embedding(s, t, args):
+    return args["l"] * jnp.stack([jnp.sin(s[0]), -jnp.cos(s[0])])
+
+
+def _cylinder_embedding(s, t, args):
+    ratio = 1 + args["R"] / args["a"]
+    return jnp.stack([args["R"] + args["a"] + 0.0 * s[0], s[0], ratio * s[0]])
+
+
+def test_pendulum_reduced_equation_and_tension():
+    """r = l eliminated: sddot = -(g/l) sin s; the tension comes back from the
+    residual of the full Cartesian equations."""
+    reduction = cjax.reduce(pendulum.system(), _pendulum_embedding)
+    args = pendulum.default_args(m=1.3, l=0.9)
+    s, sd = jnp.array([0.7]), jnp.array([1.1])
+    sdd, lam = reduction.system.accelerations(s, sd, 0.0, args)
+    assert lam.shape == (0,)
+    np.testing.assert_allclose(
+        sdd, pendulum.angular_acceleration(0.7, args), rtol=1e-13
+    )
+    full_lam = reduction.full_multipliers(s, sd, 0.0, args)
+    np.testing.assert_allclose(
+        full_lam, [-pendulum.tension(0.7, 1.1, args)], rtol=1e-12
+    )
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.6])
+def test_two_cylinders_reduced_agrees_with_full(alpha):
+    args = cyl2.default_args(alpha=alpha)
+    reduction = cjax.reduce(cyl2.system(), _cylinder_embedding)
+    theta0, theta1 = 0.2, 0.5
+    thd = jnp.sqrt(cyl2.angular_velocity_squared(theta1, theta0, args))
+    s, sd = jnp.array([theta1]), jnp.stack([thd])
+    sdd, _ = reduction.system.accelerations(s, sd, 0.0, args)
+    np.testing.assert_allclose(
+        sdd, [cyl2.angular_acceleration(theta1, args)], rtol=1e-12
+    )
+    lam = reduction.full_multipliers(s, sd, 0.0, args)
+    q, qd = cyl2.state(jnp.asarray(theta1), thd, args)
+    _, lam_full = cyl2.system().accelerations(q, qd, 0.0, args)
+    np.testing.assert_allclose(lam, lam_full, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(
+        lam[0], cyl2.normal_force(theta1, theta0, args), rtol=1e-10
+    )
+
+
+def test_reduced_and_full_trajectories_agree():
+    args = cyl2.default_args(alpha=0.5)
+    reduction = cjax.reduce(cyl2.system(), _cylinder_embedding)
+    ts = jnp.linspace(0.0, 0.6, 4)
+    saveat = cjax.SaveAt(ts=ts, multipliers=False)
+    reduced = cjax.simulate(
+        reduction.system,
+        (0.0, 0.6),
+        jnp.array([0.3]),
+        jnp.array([0.0]),
+        args,
+        saveat=saveat,
+    )
+    q0, qd0 = cyl2.state(jnp.asarray(0.3), jnp.asarray(0.0), args)
+    full = cjax.simulate(cyl2.system(), (0.0, 0.6), q0, qd0, args, saveat=saveat)
+    np.testing.assert_allclose(reduced.q[:, 0], full.q[:, 1], rtol=1e-7)
+    lifted = jax.vmap(lambda s, sd, t: reduction.lift(s, sd, t, args))(
+        reduced.q, reduced.qd, ts
+    )
+    np.testing.assert_allclose(lifted[0], full.q, rtol=1e-7)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.5, 1.0])
+def test_linearized_growth_rate_at_the_top(alpha):
+    """At the top of the fixed cylinder the rolling one is unstable with growth rate
+    sqrt(g / ((1 + alpha)(R + a)))."""
+    args = cyl2.default_args(alpha=alpha, a=0.4, R=1.1)
+    holonomic = cjax.LagrangianSystem(
+        cyl2.lagrangian,
+        cjax.Holonomic(
+            lambda q, t, p: jnp.stack(
+                [q[0] - p["R"] - p["a"], (p["R"] + p["a"]) * q[1] - p["a"] * q[2]]
+            )
+        ),
+    )
+    q, qd = cyl2.state(jnp.asarray(0.0), jnp.asarray(0.0), args)
+    lin = cjax.linearize(holonomic, q, qd, args)
+    rate = np.sqrt(args["g"] / ((1 + alpha) * (args["R"] + args["a"])))
+    np.testing.assert_allclose(
+        np.sort(np.asarray(lin.eigenvalues).real), [-rate, rate], rtol=1e-10
+    )
+    np.testing.assert_allclose(np.asarray(lin.eigenvalues).imag, 0.0, atol=1e-12)
+
+
+def test_linearized_pendulum_frequency():
+    args = pendulum.default_args(l=0.5)
+    lin = cjax.linearize(pendulum.system(), jnp.array([0.0, -0.5]), jnp.zeros(2), args)
+    omega = np.sqrt(args["g"] / args["l"])
+    np.testing.assert_allclose(
+        np.sort(np.asarray(lin.eigenvalues).imag), [-omega, omega], rtol=1e-10
+    )
+    np.testing.assert_allclose(np.asarray(lin.eigenvalues).real, 0.0, atol=1e-10)
