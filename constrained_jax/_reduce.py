@@ -40,7 +40,7 @@ class Reduction(eqx.Module):
     embedding: Callable
 
     def lift(self, s, sd, t, args=None):
-        """`(q, qdot)` from `(s, sdot)`: `q = phi(s, t)`, `qdot = dphi/ds sdot + dphi/dt`."""
+        """`(q, qdot)` from `(s, sdot)`: `q = phi`, `qdot = dphi/ds sdot + dphi/dt`."""
         t = jnp.asarray(t, jnp.result_type(s))
         fn = lambda s_, t_: self.embedding(s_, t_, args)
         return jax.jvp(fn, (s, t), (sd, jnp.ones_like(t)))
