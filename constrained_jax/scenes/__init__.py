@@ -6,5 +6,7 @@ writes it (the function or Lagrangian, the constraints, the closed-form answer),
 from . import (
     cylinder_volume as cylinder_volume,
     pendulum as pendulum,
+    rolling_disk as rolling_disk,
+    rotating_hoop as rotating_hoop,
     two_cylinders as two_cylinders,
 )
