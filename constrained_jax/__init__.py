@@ -17,6 +17,12 @@ from ._extremize import (
     EXTREMUM as EXTREMUM,
     Extremum as Extremum,
 )
+from ._integrability import (
+    exterior_derivative as exterior_derivative,
+    integrate_pfaffian as integrate_pfaffian,
+    is_exact as is_exact,
+    is_integrable as is_integrable,
+)
 from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
 from ._linalg import DenseLU as DenseLU, MINRES as MINRES
 from ._reduce import (
