@@ -487,7 +487,7 @@ def integrate_pfaffian(
         constraint,
         q_ref,
         t_ref,
-        jnp.asarray((nodes + 1.01) / 2, q_ref.dtype),
+        jnp.asarray((nodes + 1) / 2, q_ref.dtype),
         jnp.asarray(weights / 2, q_ref.dtype),
     )
     return Holonomic(integral)
