@@ -33,8 +33,8 @@ class AbstractConstraint(eqx.Module):
         """`(A, a)`: the coefficients `g_{j sigma}` and `h_j` at `(q, t)`."""
 
     @abc.abstractmethod
-    def num_constraints(self, n: int, args: PyTree) -> int:
-        """`k`, found by shape evaluation (no FLOPs)."""
+    def num_constraints(self, n: int, args: PyTree, dtype=None) -> int:
+        """`k`, found by shape evaluation (no FLOPs), for coordinates of `dtype`."""
 
     def velocity_residual(self, q, qd, t, args) -> Float[Array, " k"]:
         """`A qdot + a`: zero on admissible motions."""
@@ -72,9 +72,10 @@ class Holonomic(AbstractConstraint):
         fn = lambda q_, t_: self.position_residual(q_, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
 
-    def num_constraints(self, n, args):
-        q = jax.ShapeDtypeStruct((n,), jnp.result_type(float))
-        t = jax.ShapeDtypeStruct((), jnp.result_type(float))
+    def num_constraints(self, n, args, dtype=None):
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        q = jax.ShapeDtypeStruct((n,), dtype)
+        t = jax.ShapeDtypeStruct((), dtype)
         out = jax.eval_shape(lambda q_, t_: self.fn(q_, t_, args), q, t)
         return _check_shape("Holonomic", "G(q, t, args)", out, n, ndim=(0, 1))
 
@@ -99,9 +100,10 @@ class Pfaffian(AbstractConstraint):
             a = self.h(q, t, args)
         return jac, a
 
-    def num_constraints(self, n, args):
-        q = jax.ShapeDtypeStruct((n,), jnp.result_type(float))
-        t = jax.ShapeDtypeStruct((), jnp.result_type(float))
+    def num_constraints(self, n, args, dtype=None):
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        q = jax.ShapeDtypeStruct((n,), dtype)
+        t = jax.ShapeDtypeStruct((), dtype)
         out = jax.eval_shape(lambda q_, t_: self.g(q_, t_, args), q, t)
         if not isinstance(out, jax.ShapeDtypeStruct) or out.ndim != 2:
             raise ValueError(

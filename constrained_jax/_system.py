@@ -91,7 +91,7 @@ class LagrangianSystem(eqx.Module):
                 f"{getattr(out, 'shape', type(out).__name__)}. Sum kinetic and "
                 "potential energies into one number."
             )
-        k = sum(c.num_constraints(n, args) for c in self.constraints)
+        k = sum(c.num_constraints(n, args, q.dtype) for c in self.constraints)
         if k > n:
             raise ValueError(
                 f"There are more constraints (k = {k}) than coordinates (n = {n}); at "
@@ -188,7 +188,7 @@ class LagrangianSystem(eqx.Module):
             if isinstance(c, Holonomic):
                 parts.append(c.position_residual(q, t, args))
             else:
-                k = c.num_constraints(q.shape[0], args)
+                k = c.num_constraints(q.shape[0], args, q.dtype)
                 parts.append(jnp.zeros((k,), q.dtype))
         return jnp.concatenate(parts)
 
