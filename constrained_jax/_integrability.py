@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
-from ._constraints import AbstractConstraint, Holonomic, Pfaffian
+from ._constraints import AbstractConstraint, Holonomic
 from ._misc import as_traced_args
 
 
@@ -106,33 +106,7 @@ def _shape(out):
 
 def _check_form(constraint, n: int, dtype, args) -> int:
     """Shape-check `g` and `h` at the dtype of `q` (no FLOPs); return `k`."""
-    q = jax.ShapeDtypeStruct((n,), dtype)
-    t = jax.ShapeDtypeStruct((), dtype)
-    if isinstance(constraint, Pfaffian):
-        out = jax.eval_shape(lambda q_, t_: constraint.g(q_, t_, args), q, t)
-        if not isinstance(out, jax.ShapeDtypeStruct) or out.ndim != 2:
-            raise ValueError(
-                "Pfaffian g(q, t, args) must return an array of shape (k, n), one row "
-                f"per constraint; got {_shape(out)}."
-            )
-        if out.shape[1] != n:
-            raise ValueError(
-                f"Pfaffian g(q, t, args) has {out.shape[1]} columns but `q` has "
-                f"n = {n} coordinates: g must have shape (k, n)."
-            )
-    g, h = jax.eval_shape(lambda q_, t_: constraint.velocity_form(q_, t_, args), q, t)
-    if g.ndim != 2 or g.shape[1] != n:
-        raise ValueError(
-            f"The constraint's coefficients g must have shape (k, n) with n = {n}; got "
-            f"{g.shape}."
-        )
-    k = g.shape[0]
-    if h.shape != (k,):
-        raise ValueError(
-            f"The constraint's h(q, t, args) must return shape (k,) = ({k},); got "
-            f"{h.shape}."
-        )
-    return k
+    return constraint.num_constraints(n, args, dtype)
 
 
 # ---------------------------------------------------------------------------------
