@@ -39,16 +39,11 @@ compile times are reported separately. Run with `--quick` for a smoke test.
 """
 
 import argparse
-import datetime
 import json
 import os
-import platform
-import statistics
-import subprocess
 import time
 
 import jax
-import jaxlib
 
 
 jax.config.update("jax_enable_x64", True)
@@ -60,6 +55,7 @@ import scipy  # noqa: E402
 import scipy.integrate  # noqa: E402
 import scipy.special  # noqa: E402
 import sympy  # noqa: E402
+from _common import machine_info, time_jax, time_loop  # noqa: E402
 from sympy.physics.mechanics import dynamicsymbols, LagrangesMethod  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
@@ -84,51 +80,6 @@ JAX_TOLERANCES = {"pendulum": 1e-11, "cylinders": 1e-8}
 SCIPY_TOLERANCES = {"pendulum": 5e-12, "cylinders": 5e-9}
 SCIPY_METHOD = "DOP853"
 REFERENCE_TOLERANCE = 1e-13
-
-
-# ---------------------------------------------------------------------------------
-# Timing helpers (as in extremize.py)
-# ---------------------------------------------------------------------------------
-
-
-def time_jax(fn, *args, repeats: int):
-    """AOT-compile `jax.jit(fn)` for `args`, then time `repeats` calls after a warm-up.
-
-    Returns `(output, info)`; `info` holds the trace/lower and compile times, the
-    first-call time (trace + lower + compile + first run), and the median and all
-    post-compilation times.
-    """
-    t0 = time.perf_counter()
-    lowered = jax.jit(fn).lower(*args)
-    t1 = time.perf_counter()
-    compiled = lowered.compile()
-    t2 = time.perf_counter()
-    out = jax.block_until_ready(compiled(*args))
-    t3 = time.perf_counter()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out = jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - start)
-    info = {
-        "trace_lower_s": t1 - t0,
-        "compile_s": t2 - t1,
-        "first_call_s": t3 - t0,
-        "median_s": statistics.median(times),
-        "times_s": times,
-    }
-    return out, info
-
-
-def time_loop(solve_one, problems, repeats: int):
-    """Median wall time of `[solve_one(p) for p in problems]` over `repeats` runs."""
-    times = []
-    results = None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        results = [solve_one(p) for p in problems]
-        times.append(time.perf_counter() - start)
-    return results, statistics.median(times), times
 
 
 # ---------------------------------------------------------------------------------
@@ -611,38 +562,6 @@ def trajectory_benchmark(scene: str, sizes: dict) -> dict:
 # ---------------------------------------------------------------------------------
 
 
-def machine_info() -> dict:
-    try:
-        commit = subprocess.run(
-            ["git", "describe", "--always", "--dirty"],
-            capture_output=True,
-            text=True,
-            check=False,
-            cwd=os.path.dirname(os.path.abspath(__file__)),
-        ).stdout.strip()
-    except OSError:
-        commit = ""
-    return {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in jax.devices()],
-        "versions": {
-            "jax": jax.__version__,
-            "jaxlib": jaxlib.__version__,
-            "diffrax": diffrax.__version__,
-            "numpy": np.__version__,
-            "scipy": scipy.__version__,
-            "sympy": sympy.__version__,
-            "constrained_jax": cjax.__version__,
-        },
-        "git": commit,
-    }
-
-
 def plot(results: dict, path: str) -> None:
     import matplotlib
 
@@ -769,7 +688,11 @@ def main() -> None:
         }
     os.makedirs(opts.out, exist_ok=True)
     results = {
-        "machine": machine_info(),
+        "machine": machine_info(
+            diffrax=diffrax.__version__,
+            scipy=scipy.__version__,
+            sympy=sympy.__version__,
+        ),
         "quick": opts.quick,
         "settings": {
             "pendulum": {

@@ -26,18 +26,12 @@ compile times are reported separately. Run with `--quick` for a smoke test.
 """
 
 import argparse
-import datetime
 import json
 import os
-import platform
-import re
-import statistics
-import subprocess
 import time
 import warnings
 
 import jax
-import jaxlib
 
 
 jax.config.update("jax_enable_x64", True)
@@ -46,6 +40,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 import scipy.optimize  # noqa: E402
+from _common import machine_info, time_jax, time_loop  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
 from constrained_jax.scenes import cylinder_volume as cyl  # noqa: E402
@@ -69,72 +64,8 @@ MEAN_SQUARE_ENERGY = 0.2
 
 
 # ---------------------------------------------------------------------------------
-# Timing helpers
+# Errors (timing helpers: benchmarks/_common.py)
 # ---------------------------------------------------------------------------------
-
-
-def _memory(compiled) -> dict:
-    try:
-        stats = compiled.memory_analysis()
-    except Exception:  # not every backend reports it
-        return {}
-    if stats is None:
-        return {}
-    out = {}
-    for name in (
-        "argument_size_in_bytes",
-        "output_size_in_bytes",
-        "temp_size_in_bytes",
-    ):
-        value = getattr(stats, name, None)
-        if value is not None:
-            out[name] = int(value)
-    return out
-
-
-def time_jax(fn, *args, repeats: int):
-    """AOT-compile `jax.jit(fn)` for `args`, then time `repeats` calls after a warm-up.
-
-    Returns `(output, info)`; `info` holds the trace/lower and compile times, the
-    first-call time (trace + lower + compile + first run, what a user waits for on
-    the first call), the median and all post-compilation times, and XLA's buffer
-    sizes.
-    """
-    t0 = time.perf_counter()
-    lowered = jax.jit(fn).lower(*args)
-    t1 = time.perf_counter()
-    compiled = lowered.compile()
-    t2 = time.perf_counter()
-    out = jax.block_until_ready(compiled(*args))
-    t3 = time.perf_counter()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out = jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - start)
-    info = {
-        "trace_lower_s": t1 - t0,
-        "compile_s": t2 - t1,
-        "first_call_s": t3 - t0,
-        "median_s": statistics.median(times),
-        "times_s": times,
-        "xla_memory": _memory(compiled),
-        "lapack_calls_in_hlo": sorted(
-            set(re.findall(r"custom_call @(lapack_\w+)", lowered.as_text()))
-        ),
-    }
-    return out, info
-
-
-def time_loop(solve_one, problems, repeats: int):
-    """Median wall time of `[solve_one(p) for p in problems]` over `repeats` runs."""
-    times = []
-    results = None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        results = [solve_one(p) for p in problems]
-        times.append(time.perf_counter() - start)
-    return results, statistics.median(times), times
 
 
 def relative_error(value, reference):
@@ -472,36 +403,6 @@ def maxent_slsqp(n, repeats):
 # ---------------------------------------------------------------------------------
 
 
-def machine_info() -> dict:
-    try:
-        commit = subprocess.run(
-            ["git", "describe", "--always", "--dirty"],
-            capture_output=True,
-            text=True,
-            check=False,
-            cwd=os.path.dirname(os.path.abspath(__file__)),
-        ).stdout.strip()
-    except OSError:
-        commit = ""
-    return {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in jax.devices()],
-        "versions": {
-            "jax": jax.__version__,
-            "jaxlib": jaxlib.__version__,
-            "numpy": np.__version__,
-            "scipy": scipy.__version__,
-            "constrained_jax": cjax.__version__,
-        },
-        "git": commit,
-    }
-
-
 def _short(name: str) -> str:
     """A short label for a method, for the plot's axis."""
     table = {
@@ -615,7 +516,7 @@ def main() -> None:
     if opts.maxent_slsqp_n is not None:
         slsqp_sizes = opts.maxent_slsqp_n
     os.makedirs(opts.out, exist_ok=True)
-    results = {"machine": machine_info(), "quick": opts.quick}
+    results = {"machine": machine_info(scipy=scipy.__version__), "quick": opts.quick}
     print(json.dumps(results["machine"], indent=1))
 
     # 1-3. Cylinder batch.
