@@ -23,7 +23,13 @@ from ._integrability import (
     is_exact as is_exact,
     is_integrable as is_integrable,
 )
-from ._kkt import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
+from ._kkt import (
+    AbstractKKTSolver as AbstractKKTSolver,
+    AbstractSaddlePointSolver as AbstractSaddlePointSolver,
+    FullKKTLU as FullKKTLU,
+    Newton as Newton,
+    RangeSpaceLDL as RangeSpaceLDL,
+)
 from ._linalg import DenseLU as DenseLU, MINRES as MINRES
 from ._reduce import (
     Linearization as Linearization,
@@ -45,6 +51,15 @@ from ._stabilization import (
     Unstabilized as Unstabilized,
 )
 from ._system import LagrangianSystem as LagrangianSystem
+from ._variational_integrator import (
+    AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,
+    AbstractVariationalIntegrator as AbstractVariationalIntegrator,
+    integrate_variational as integrate_variational,
+    Midpoint as Midpoint,
+    Trapezoidal as Trapezoidal,
+    VariationalIntegrator as VariationalIntegrator,
+    VariationalState as VariationalState,
+)
 
 
 __version__ = importlib.metadata.version("constrained_jax")

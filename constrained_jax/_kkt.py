@@ -28,7 +28,13 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from ._linalg import dense_factor, dense_solve, DenseLU
+from ._linalg import (
+    dense_factor,
+    dense_solve,
+    DenseLU,
+    ldl_factor_unrolled,
+    ldl_solve_unrolled,
+)
 from ._results import RESULTS
 
 
@@ -150,6 +156,144 @@ def reduced_hessian_extremes(
     tri = jnp.diag(alphas) + jnp.diag(off, 1) + jnp.diag(off, -1)
     eigs = jnp.linalg.eigvalsh(tri)
     return jnp.stack([eigs[0], eigs[-1]])
+
+
+# ---------------------------------------------------------------------------------
+# Saddle-point solves of mechanics: [[M, -A^T], [A, 0]] [x; lambda] = [f; -b]
+# ---------------------------------------------------------------------------------
+
+
+class AbstractSaddlePointSolver(eqx.Module):
+    """A method for the saddle-point system of constrained mechanics,
+
+        M x - A^T lambda = f,    A x = -b,
+
+    with `M` (n x n) symmetric and `A` (k x n). The system is nonsingular exactly when
+    `A` has full row rank and `M` is positive definite on the null space of `A`; `M`
+    itself may be singular.
+    """
+
+    @abc.abstractmethod
+    def solve(
+        self,
+        mass: Float[Array, "n n"],
+        jac: Float[Array, "k n"],
+        rhs: Float[Array, " n"],
+        bias: Float[Array, " k"],
+    ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
+        """Returns `(x, lambda, singular)`; when `singular`, `x` and `lambda` are 0."""
+
+
+class FullKKTLU(AbstractSaddlePointSolver):
+    """Forms the `(n + k)` square KKT matrix and factors it by LU with partial
+    pivoting (unrolled up to `unroll_max` unknowns, LAPACK above).
+
+    Needs nothing but a nonsingular KKT matrix, so it also handles Lagrangians whose
+    `M` is indefinite. Under `jax.vmap` the pivoting (row selection, permutation)
+    becomes batched `dot`s and gathers that XLA on CPU does not fuse: for small
+    systems it costs several times [`constrained_jax.RangeSpaceLDL`][].
+    """
+
+    unroll_max: int = 12
+
+    def solve(self, mass, jac, rhs, bias):
+        n, k = mass.shape[0], jac.shape[0]
+        if k == 0:
+            matrix, vector = mass, rhs
+        else:
+            zeros = jnp.zeros((k, k), mass.dtype)
+            matrix = jnp.block([[mass, -jac.T], [jac, zeros]])
+            vector = jnp.concatenate([rhs, -bias])
+        factors = dense_factor(matrix, self.unroll_max)
+        sol = dense_solve(factors, vector, self.unroll_max)
+        return sol[:n], sol[n:], factors[2]
+
+
+class RangeSpaceLDL(AbstractSaddlePointSolver):
+    """The range-space (Schur complement) method on the augmented mass matrix.
+
+    Adding `rho A^T (A x + b) = 0` to the first block row gives the equivalent system
+
+        M~ x - A^T lambda = f - rho A^T b,   M~ = M + rho A^T A,
+
+    and `M~` is positive definite whenever `M` is positive semidefinite and the KKT
+    matrix is nonsingular, even when `M` is singular (a massless direction that the
+    constraints fix, as for the rolling cylinder with `I = 0`). Then
+
+        (A M~^-1 A^T) lambda = -b - A M~^-1 (f - rho A^T b),
+        x = M~^-1 (f - rho A^T b + A^T lambda),
+
+    with `M~` and the Schur complement factored by `L D L^T` without pivoting,
+    `rho = tr M / tr(A A^T)` (same units as `M`, so the scaling of the problem is kept).
+    Every operation is written on scalars and unrolled, so that under `jax.vmap` it
+    fuses into a few elementwise loops: on the scenes of `benchmarks/dynamics.py` it is
+    several times faster than [`constrained_jax.FullKKTLU`][] and close to hand-written
+    equations. Systems with `n + k > unroll_max` use `FullKKTLU`.
+
+    !!! note
+
+        A pivot below `10 m eps` of the largest entry counts as a breakdown and the
+        system is reported singular. For positive semidefinite `M` (every kinetic
+        energy) that happens only when the KKT matrix is singular to working
+        precision. For an *indefinite* `M` (not a kinetic energy) the elimination may
+        break down on a nonsingular KKT matrix: use [`constrained_jax.FullKKTLU`][].
+
+    **Reference:** J. Nocedal and S. J. Wright, *Numerical Optimization*, 2nd ed.,
+    Springer (2006), sections 16.2-16.3 (range-space method, augmented Lagrangian).
+    """
+
+    unroll_max: int = 12
+
+    def solve(self, mass, jac, rhs, bias):
+        n, k = mass.shape[0], jac.shape[0]
+        if n + k > self.unroll_max:
+            return FullKKTLU(unroll_max=0).solve(mass, jac, rhs, bias)
+        m = [[mass[i, j] for j in range(n)] for i in range(n)]
+        a = [[jac[r, i] for i in range(n)] for r in range(k)]
+        f = [rhs[i] for i in range(n)]
+        b = [bias[r] for r in range(k)]
+        if k > 0:
+            trace_m = sum(jnp.abs(m[i][i]) for i in range(n))
+            trace_a = sum(a[r][i] * a[r][i] for r in range(k) for i in range(n))
+            one = jnp.ones_like(trace_m)
+            rho = jnp.where(trace_m > 0, trace_m, one) / jnp.where(
+                trace_a > 0, trace_a, one
+            )
+            m = [
+                [
+                    m[i][j] + rho * sum(a[r][i] * a[r][j] for r in range(k))
+                    for j in range(n)
+                ]
+                for i in range(n)
+            ]
+            f = [f[i] - rho * sum(a[r][i] * b[r] for r in range(k)) for i in range(n)]
+        lower, d, singular = ldl_factor_unrolled(m)
+        u = ldl_solve_unrolled(lower, d, f)
+        if k == 0:
+            x = jnp.stack(u)
+            return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
+        y = [ldl_solve_unrolled(lower, d, a[r]) for r in range(k)]  # M~^-1 A^T
+        schur = [
+            [sum(a[r][i] * y[s][i] for i in range(n)) for s in range(k)]
+            for r in range(k)
+        ]
+        lower_s, d_s, singular_s = ldl_factor_unrolled(schur)
+        lam = ldl_solve_unrolled(
+            lower_s,
+            d_s,
+            [-b[r] - sum(a[r][i] * u[i] for i in range(n)) for r in range(k)],
+        )
+        x = [u[i] + sum(y[r][i] * lam[r] for r in range(k)) for i in range(n)]
+        singular = singular | singular_s
+        x, lam = jnp.stack(x), jnp.stack(lam)
+        return jnp.where(singular, 0.0, x), jnp.where(singular, 0.0, lam), singular
+
+
+FullKKTLU.__init__.__doc__ = RangeSpaceLDL.__init__.__doc__ = """**Arguments:**
+
+- `unroll_max`: the largest `n + k` solved by unrolled elimination (trace and compile
+    time grow like `(n + k)**3`); larger systems use LAPACK's LU on the full matrix.
+"""
 
 
 # ---------------------------------------------------------------------------------

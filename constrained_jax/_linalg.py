@@ -16,6 +16,7 @@ function theorem in the backward pass):
   products by autodiff, so an n x n matrix is never formed.
 """
 
+import functools
 from typing import Any
 
 import jax
@@ -94,6 +95,63 @@ def lu_solve_unrolled(
             s = s - lu[i, j] * xs[j]
         xs[i] = s / lu[i, i]
     return jnp.stack(xs)
+
+
+def ldl_factor_unrolled(
+    a: list[list[Array]],
+) -> tuple[list[list[Array]], list[Array], Bool[Array, ""]]:
+    """`a = L D L^T` without pivoting, on a symmetric matrix given as nested lists of
+    scalars, unrolled at trace time.
+
+    Returns `(L, d, breakdown)`: `L[i][j]` for `j < i` (unit diagonal implied), the
+    diagonal `d`, and a flag raised when a pivot is smaller than `10 m eps max|a|`
+    (then that pivot is replaced by 1 so that nothing is NaN). Working on scalars keeps
+    every operation elementwise: under `jax.vmap` the whole factorisation fuses into a
+    few loops over the batch (matrix slicing and `@` would become batched `dot`s and
+    gathers, which XLA on CPU does not fuse).
+
+    Without pivoting this is backward stable for positive definite `a`; for an
+    indefinite `a` it works whenever no leading principal minor vanishes.
+    """
+    m = len(a)
+    scale = functools.reduce(jnp.maximum, [jnp.abs(x) for row in a for x in row])
+    threshold = 10 * m * jnp.finfo(jnp.result_type(scale)).eps * scale
+    lower: list[list[Array]] = [[] for _ in range(m)]
+    d: list[Array] = []
+    breakdown = jnp.array(False)
+    for j in range(m):
+        s = a[j][j]
+        for p in range(j):
+            s = s - lower[j][p] * lower[j][p] * d[p]
+        small = jnp.abs(s) <= threshold
+        breakdown = breakdown | small
+        d.append(jnp.where(small, jnp.ones_like(s), s))
+        for i in range(j + 1, m):
+            t = a[i][j]
+            for p in range(j):
+                t = t - lower[i][p] * lower[j][p] * d[p]
+            lower[i].append(t / d[j])
+    return lower, d, breakdown
+
+
+def ldl_solve_unrolled(
+    lower: list[list[Array]], d: list[Array], b: list[Array]
+) -> list[Array]:
+    """Solve `L D L^T x = b` given `ldl_factor_unrolled` (lists of scalars)."""
+    m = len(d)
+    y: list[Array] = []
+    for i in range(m):
+        s = b[i]
+        for p in range(i):
+            s = s - lower[i][p] * y[p]
+        y.append(s)
+    x: list = [None] * m
+    for i in reversed(range(m)):
+        s = y[i] / d[i]
+        for p in range(i + 1, m):
+            s = s - lower[p][i] * x[p]
+        x[i] = s
+    return x
 
 
 def dense_factor(a: Float[Array, "m m"], unroll_max: int):

@@ -22,11 +22,6 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._linalg import dense_factor, dense_solve
-
-
-_UNROLL_MAX = 12
-
 
 class AbstractStabilization(eqx.Module):
     """How `simulate` keeps the constraints satisfied (see the module docstring)."""
@@ -71,11 +66,10 @@ def project_state(system, q, qd, t, args, iterations: int):
     mass = system.mass_matrix(q, qd, t, args)
 
     def kkt_solve(jac, rhs_lower):
-        k = jac.shape[0]
-        matrix = jnp.block([[mass, jac.T], [jac, jnp.zeros((k, k), q.dtype)]])
-        vector = jnp.concatenate([jnp.zeros((n,), q.dtype), rhs_lower])
-        factors = dense_factor(matrix, _UNROLL_MAX)
-        return dense_solve(factors, vector, _UNROLL_MAX)[:n]
+        # [[M, A^T], [A, 0]] [dq; mu] = [0; r] is the system's saddle-point problem
+        # with f = 0 and bias = -r (and lambda = -mu).
+        zeros = jnp.zeros((n,), q.dtype)
+        return system.linear_solver.solve(mass, jac, zeros, -rhs_lower)[0]
 
     for _ in range(iterations):
         jac = system.constraint_jacobian(q, t, args)

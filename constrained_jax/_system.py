@@ -23,10 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint, Holonomic
-from ._linalg import dense_factor, dense_solve
-
-
-_UNROLL_MAX = 12
+from ._kkt import AbstractSaddlePointSolver, RangeSpaceLDL
 
 
 class LagrangianSystem(eqx.Module):
@@ -41,6 +38,11 @@ class LagrangianSystem(eqx.Module):
         in the order given; so are the multipliers.
     - `forces`: `Q(q, qd, t, args) -> (n,)`, generalised non-conservative forces, or
         `None`.
+    - `linear_solver`: how the KKT system is solved, an
+        `AbstractSaddlePointSolver`: [`constrained_jax.RangeSpaceLDL`][] (default;
+        any positive semidefinite `M`, i.e. any kinetic energy, even a singular one)
+        or [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole KKT matrix, also
+        for indefinite `M`, several times slower under `vmap`).
 
     Coordinates `q` are arrays of shape `(n,)`; `t` is a scalar.
     """
@@ -48,12 +50,15 @@ class LagrangianSystem(eqx.Module):
     lagrangian: Callable
     constraints: tuple[AbstractConstraint, ...] = ()
     forces: Callable | None = None
+    linear_solver: AbstractSaddlePointSolver = RangeSpaceLDL()
 
     def __init__(
         self,
         lagrangian: Callable,
         constraints: AbstractConstraint | Sequence[AbstractConstraint] = (),
         forces: Callable | None = None,
+        *,
+        linear_solver: AbstractSaddlePointSolver = RangeSpaceLDL(),
     ):
         if not callable(lagrangian):
             raise ValueError("`lagrangian` must be a callable L(q, qd, t, args).")
@@ -71,7 +76,13 @@ class LagrangianSystem(eqx.Module):
             raise ValueError("`forces` must be a callable Q(q, qd, t, args) or None.")
         self.lagrangian = lagrangian
         self.constraints = constraints
+        if not isinstance(linear_solver, AbstractSaddlePointSolver):
+            raise ValueError(
+                "`linear_solver` must be `cjax.RangeSpaceLDL()` or `cjax.FullKKTLU()`, "
+                f"got {type(linear_solver).__name__}."
+            )
         self.forces = forces
+        self.linear_solver = linear_solver
 
     # ------------------------------------------------------------------ structure
 
@@ -198,24 +209,16 @@ class LagrangianSystem(eqx.Module):
         """`(qddot, lambda, singular)`: the KKT solve without raising.
 
         `singular` flags a singular KKT matrix (then `qddot`, `lambda` are zeros).
-        Systems with `n + k <= 12` are solved by unrolled elimination that XLA fuses
-        (on CPU a LAPACK call on such a small matrix costs more than its arithmetic).
-        `bias_correction` (shape `(k,)`) is added to the acceleration bias, as
-        Baumgarte stabilization does.
+        The solve is `self.linear_solver`'s (by default the range-space method,
+        unrolled so that XLA fuses it: on CPU a LAPACK call on such a small matrix
+        costs more than its arithmetic). `bias_correction` (shape `(k,)`) is added to
+        the acceleration bias, as Baumgarte stabilization does.
         """
         t = jnp.asarray(t, q.dtype)
         mass, rhs, jac, bias = self._equations(q, qd, t, args)
         if bias_correction is not None:
             bias = bias + bias_correction
-        n, k = mass.shape[0], jac.shape[0]
-        if k == 0:
-            matrix, vector = mass, rhs
-        else:
-            matrix = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k), q.dtype)]])
-            vector = jnp.concatenate([rhs, -bias])
-        factors = dense_factor(matrix, _UNROLL_MAX)
-        sol = dense_solve(factors, vector, _UNROLL_MAX)
-        return sol[:n], sol[n:], factors[2]
+        return self.linear_solver.solve(mass, jac, rhs, bias)
 
     def accelerations(self, q, qd, t, args=None):
         """Solve the equations of motion for `(qddot, multipliers)`.

@@ -1,0 +1,135 @@
+"""The saddle-point solvers of mechanics, `RangeSpaceLDL` and `FullKKTLU`, against
+NumPy's dense solve of the same KKT matrix."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+
+from .helpers import finite_difference_grad
+
+
+def _kkt_reference(mass, jac, rhs, bias):
+    n, k = mass.shape[0], jac.shape[0]
+    matrix = np.block([[mass, -jac.T], [jac, np.zeros((k, k))]])
+    sol = np.linalg.solve(matrix, np.concatenate([rhs, -bias]))
+    return sol[:n], sol[n:]
+
+
+def _random_problem(rng, n, k, rank_m):
+    """`M` positive semidefinite of rank `rank_m` (singular when `rank_m < n`), `A` of
+    full row rank, and `M` positive definite on `ker A` when `rank_m + k >= n`."""
+    basis = rng.normal(size=(n, rank_m))
+    mass = basis @ basis.T
+    jac = rng.normal(size=(k, n))
+    return mass, jac, rng.normal(size=n), rng.normal(size=k)
+
+
+SOLVERS = [cjax.RangeSpaceLDL(), cjax.FullKKTLU(), cjax.RangeSpaceLDL(unroll_max=0)]
+
+
+@pytest.mark.parametrize("solver", SOLVERS, ids=["range-space", "full-lu", "lapack"])
+@pytest.mark.parametrize(
+    "n, k, rank_m", [(2, 1, 2), (3, 2, 3), (3, 2, 1), (5, 3, 2), (6, 0, 6), (4, 4, 0)]
+)
+def test_matches_dense_solve(solver, n, k, rank_m):
+    rng = np.random.default_rng(100 * n + 10 * k + rank_m)
+    mass, jac, rhs, bias = _random_problem(rng, n, k, rank_m)
+    x, lam, singular = jax.jit(solver.solve)(*map(jnp.asarray, (mass, jac, rhs, bias)))
+    x_ref, lam_ref = _kkt_reference(mass, jac, rhs, bias)
+    assert not singular
+    scale = 1 + np.max(np.abs(np.concatenate([x_ref, lam_ref])))
+    np.testing.assert_allclose(x, x_ref, atol=1e-11 * scale)
+    np.testing.assert_allclose(lam, lam_ref, atol=1e-11 * scale)
+
+
+def test_badly_scaled_units():
+    """Masses of 1e6 next to a constraint row of 1e-3: the augmentation weight follows
+    the units, so the answer keeps its relative accuracy."""
+    rng = np.random.default_rng(0)
+    mass, jac, rhs, bias = _random_problem(rng, 4, 2, 3)
+    mass, jac = 1e6 * mass, 1e-3 * jac
+    x, lam, singular = cjax.RangeSpaceLDL().solve(
+        *map(jnp.asarray, (mass, jac, rhs, bias))
+    )
+    x_ref, lam_ref = _kkt_reference(mass, jac, rhs, bias)
+    assert not singular
+    np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-12 * np.max(np.abs(x_ref)))
+    np.testing.assert_allclose(lam, lam_ref, rtol=1e-9)
+
+
+@pytest.mark.parametrize("solver", SOLVERS[:2], ids=["range-space", "full-lu"])
+def test_singular_systems_are_flagged(solver):
+    rng = np.random.default_rng(1)
+    # M singular on ker A: rank(M) + k < n.
+    mass, jac, rhs, bias = _random_problem(rng, 4, 1, 2)
+    x, lam, singular = jax.jit(solver.solve)(*map(jnp.asarray, (mass, jac, rhs, bias)))
+    assert singular and np.all(x == 0) and np.all(lam == 0)
+    # Redundant rows: the second row repeats the first.
+    mass, jac, rhs, bias = _random_problem(rng, 4, 2, 4)
+    jac[1] = 2 * jac[0]
+    _, _, singular = jax.jit(solver.solve)(*map(jnp.asarray, (mass, jac, rhs, bias)))
+    assert singular
+
+
+def test_indefinite_mass_matrix_needs_full_kkt_lu():
+    """`M = [[-2, 1], [1, 1]]` (indefinite) with the row `A = (1, 0)`: `M` is positive
+    definite on `ker A = span(0, 1)`, so the KKT matrix is nonsingular. With
+    `rho = tr|M| / tr(A A^T) = 3` the augmented `M + rho A^T A = [[1, 1], [1, 1]]` is
+    singular: the range-space method breaks down and says so (never a wrong answer),
+    and `FullKKTLU` solves the system."""
+    mass = np.array([[-2.0, 1.0], [1.0, 1.0]])
+    jac = np.array([[1.0, 0.0]])
+    rhs, bias = np.array([1.0, 2.0]), np.array([0.5])
+    x_ref, lam_ref = _kkt_reference(mass, jac, rhs, bias)
+    args = tuple(map(jnp.asarray, (mass, jac, rhs, bias)))
+    x, lam, singular = jax.jit(cjax.FullKKTLU().solve)(*args)
+    assert not singular
+    np.testing.assert_allclose(x, x_ref, atol=1e-13)
+    np.testing.assert_allclose(lam, lam_ref, atol=1e-13)
+    x, lam, singular = jax.jit(cjax.RangeSpaceLDL().solve)(*args)
+    assert singular and np.all(x == 0) and np.all(lam == 0)
+
+
+def test_vmap_and_grad():
+    rng = np.random.default_rng(2)
+    problems = [_random_problem(rng, 3, 2, 2) for _ in range(5)]
+    stacked = [jnp.asarray(np.stack(p)) for p in zip(*problems, strict=True)]
+    solver = cjax.RangeSpaceLDL()
+    xs, lams, singular = jax.jit(jax.vmap(solver.solve))(*stacked)
+    assert not np.any(singular)
+    for i, p in enumerate(problems):
+        x_ref, lam_ref = _kkt_reference(*p)
+        np.testing.assert_allclose(xs[i], x_ref, atol=1e-11)
+        np.testing.assert_allclose(lams[i], lam_ref, atol=1e-11)
+
+    mass, jac, rhs, bias = map(jnp.asarray, problems[0])
+
+    def loss(scale):
+        x, lam, _ = solver.solve(mass * scale[0], jac * scale[1], rhs, bias)
+        return jnp.sum(x**2) + jnp.sum(jnp.sin(lam))
+
+    point = jnp.array([1.3, 0.7])
+    np.testing.assert_allclose(
+        jax.jit(jax.grad(loss))(point),
+        finite_difference_grad(jax.jit(loss), point),
+        rtol=1e-6,
+    )
+
+
+def test_system_uses_its_solver():
+    """The two cylinders at alpha = 0 (singular M): both solvers give the lecture's
+    normal force, and `FullKKTLU` can be chosen per system."""
+    cyl = cjax.scenes.two_cylinders
+    args = cyl.default_args(alpha=0.0)
+    q, qd = cyl.state(0.4, 0.0, args)
+    for solver in (cjax.RangeSpaceLDL(), cjax.FullKKTLU()):
+        system = cjax.LagrangianSystem(
+            cyl.system().lagrangian, cyl.system().constraints, linear_solver=solver
+        )
+        _, lam = jax.jit(system.accelerations)(q, qd, 0.0, args)
+        np.testing.assert_allclose(lam[0], cyl.normal_force(0.4, 0.4, args), rtol=1e-12)
+    with pytest.raises(ValueError, match="linear_solver"):
+        cjax.LagrangianSystem(cyl.system().lagrangian, linear_solver=cjax.DenseLU())
