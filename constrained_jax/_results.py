@@ -52,3 +52,14 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "singular during the simulation: the Lagrangian is not regular in a velocity "
         "direction the constraints leave free, or the constraints became dependent."
     )
+    variational_step_failed = (
+        "A step of the variational integrator failed: its Newton iteration did not "
+        "converge within `newton_steps` iterations, or its Jacobian was singular. "
+        "Reduce the step `dt0`, increase `newton_steps` (or loosen `rtol`/`atol` in "
+        "float32), or check that the constraints are independent and the Lagrangian "
+        "is regular on them."
+    )
+    invalid_time_grid = (
+        "The time grid of a fixed-step integration is invalid: `dt0` must be "
+        "positive, `t0 <= t1`, and the save times nondecreasing within [t0, t1]."
+    )
