@@ -73,6 +73,43 @@ def time_jax(fn, *args, repeats: int):
     return out, info
 
 
+def time_jax_interleaved(fns: dict, *args, repeats: int):
+    """Like `time_jax` for several functions of the same inputs, timed in turn.
+
+    All are compiled first; then each of the `repeats` rounds calls every function
+    once, so that a slow period of a shared, noisy machine hits all of them alike and
+    the ratios of the medians stay meaningful. Returns `(outputs, infos)`, dicts keyed
+    like `fns`.
+    """
+    compiled, infos, outputs = {}, {}, {}
+    for name, fn in fns.items():
+        t0 = time.perf_counter()
+        lowered = jax.jit(fn).lower(*args)
+        t1 = time.perf_counter()
+        compiled[name] = lowered.compile()
+        t2 = time.perf_counter()
+        outputs[name] = jax.block_until_ready(compiled[name](*args))
+        t3 = time.perf_counter()
+        infos[name] = {
+            "trace_lower_s": t1 - t0,
+            "compile_s": t2 - t1,
+            "first_call_s": t3 - t0,
+            "times_s": [],
+            "xla_memory": memory_analysis(compiled[name]),
+            "lapack_calls_in_hlo": sorted(
+                set(re.findall(r"custom_call @(lapack_\w+)", lowered.as_text()))
+            ),
+        }
+    for _ in range(repeats):
+        for name in fns:
+            start = time.perf_counter()
+            jax.block_until_ready(compiled[name](*args))
+            infos[name]["times_s"].append(time.perf_counter() - start)
+    for info in infos.values():
+        info["median_s"] = statistics.median(info["times_s"])
+    return outputs, infos
+
+
 def time_loop(solve_one, problems, repeats: int):
     """Median wall time of `[solve_one(p) for p in problems]` over `repeats` runs."""
     times = []

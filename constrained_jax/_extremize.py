@@ -27,7 +27,7 @@ from ._kkt import (
     reduced_hessian_extremes,
     tangent_projector,
 )
-from ._misc import all_finite, as_traced_args, check_max_steps
+from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
 from ._results import RESULTS
 
 
@@ -203,7 +203,7 @@ def extremize(
         system converges to nearby minima, maxima and saddles alike. Check `kind`.
     """
     args = as_traced_args(args)
-    x0 = jtu.tree_map(_inexact_asarray, x0)
+    x0 = jtu.tree_map(inexact_asarray, x0)
     return _extremize(
         objective,
         x0,
@@ -346,11 +346,3 @@ def _classify(extremes: Float[Array, "2"], n: int, k: int, dtype) -> EXTREMUM:
             ),
         ),
     )
-
-
-def _inexact_asarray(x):
-    """A strongly typed floating array: weak types would recompile on every change."""
-    dtype = jnp.result_type(x)
-    if not jnp.issubdtype(dtype, jnp.inexact):
-        dtype = jnp.result_type(float)
-    return jnp.asarray(x, dtype=dtype)

@@ -38,3 +38,13 @@ def all_finite(tree: PyTree) -> Bool[Array, ""]:
 def check_max_steps(max_steps) -> None:
     if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+
+
+def inexact_asarray(x) -> Array:
+    """A strongly typed floating array: floating inputs keep their precision (float32
+    stays float32), others become the default float. Weak types would recompile on
+    every change."""
+    dtype = jnp.result_type(x)
+    if not jnp.issubdtype(dtype, jnp.inexact):
+        dtype = jnp.result_type(float)
+    return jnp.asarray(x, dtype=dtype)

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._misc import all_finite, as_traced_args, check_max_steps
+from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
 from ._results import RESULTS
 from ._stabilization import (
     AbstractStabilization,
@@ -20,6 +20,7 @@ from ._stabilization import (
     project_state,
     ProjectedSolver,
     Projection,
+    resolve_implicit_tolerances,
     Unstabilized,
 )
 from ._system import LagrangianSystem
@@ -85,7 +86,8 @@ def consistent_initial_state(
     Positions by Gauss-Newton on the holonomic constraints (the smallest correction in
     the metric of `M`), velocities onto `A qdot + a = 0`. Returns `(q0, qd0)`.
     """
-    q0, qd0 = jnp.asarray(q0, float), jnp.asarray(qd0, float)
+    q0 = inexact_asarray(q0)
+    qd0 = jnp.asarray(qd0, q0.dtype)
     system.check(q0, qd0, t0, args)
     return project_state(system, q0, qd0, jnp.asarray(t0, q0.dtype), args, iterations)
 
@@ -158,12 +160,17 @@ def simulate(
     check_max_steps(max_steps)
     args = as_traced_args(args)
     t0, t1 = t_span
+    # Floating inputs keep their precision (float32 runs in float32); others become
+    # the default float.
+    q0 = inexact_asarray(q0)
+    dtype = q0.dtype
+    qd0 = jnp.asarray(qd0, dtype)
     return _simulate(
         system,
-        jnp.asarray(t0, float),
-        jnp.asarray(t1, float),
-        jnp.asarray(q0, float),
-        jnp.asarray(qd0, float),
+        jnp.asarray(t0, dtype),
+        jnp.asarray(t1, dtype),
+        q0,
+        qd0,
         args,
         solver,
         stabilization,
@@ -204,9 +211,16 @@ def _simulate(
     ) & jnp.all(jnp.abs(velocity) <= consistency_tol * (1 + jnp.max(jnp.abs(qd0))))
 
     if isinstance(stabilization, Projection):
+        solver = resolve_implicit_tolerances(solver, stepsize_controller)
         solver = ProjectedSolver(solver, system, stabilization.iterations)
     terms = diffrax.ODETerm(_vector_field(system, stabilization))
-    diffrax_saveat = diffrax.SaveAt(t0=saveat.t0, t1=saveat.t1, ts=saveat.ts)
+    # The user's times, and the last state reached (where a failed run stopped).
+    diffrax_saveat = diffrax.SaveAt(
+        subs=[
+            diffrax.SubSaveAt(t0=saveat.t0, t1=saveat.t1, ts=saveat.ts),
+            diffrax.SubSaveAt(t1=True),
+        ]
+    )
     sol = diffrax.diffeqsolve(
         terms,
         solver,
@@ -221,8 +235,8 @@ def _simulate(
         adjoint=adjoint,
         throw=False,
     )
-    ts = sol.ts
-    q, qd = sol.ys
+    ts, ts_end = sol.ts
+    (q, qd), (q_end, qd_end) = sol.ys
     if isinstance(stabilization, Projection):
         # Saved states between steps are interpolated: project them as well.
         q, qd = jax.vmap(
@@ -248,12 +262,15 @@ def _simulate(
     extra = jax.vmap(derived)(q, qd, ts)
 
     result = RESULTS.promote(sol.result)
+    # A run that failed where the KKT matrix is singular failed because of it: the
+    # vector field returns NaN there, so the steps were rejected until the budget ran
+    # out. Checked at the last state reached (and at the saved states if available).
+    _, _, singular = system.solve_accelerations(q_end[0], qd_end[0], ts_end[0], args)
     if saveat.multipliers:
-        result = RESULTS.where(
-            jnp.any(extra["singular"]) & (result != RESULTS.successful),
-            RESULTS.singular_dynamics,
-            result,
-        )
+        singular = singular | jnp.any(extra["singular"])
+    result = RESULTS.where(
+        singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
+    )
     result = RESULTS.where(consistent, result, RESULTS.inconsistent_initial_state)
     result = RESULTS.where(start_ok, result, RESULTS.invalid_input)
     violation = None

@@ -20,6 +20,7 @@ from typing import Any
 import diffrax
 import equinox as eqx
 import jax.numpy as jnp
+from diffrax._root_finder import use_stepsize_tol
 from jaxtyping import Array, Float
 
 
@@ -55,6 +56,10 @@ class Projection(AbstractStabilization):
     `[[M, A^T], [A, 0]] [dq; mu] = [0; -G]` (Pfaffian rows get `0`: the correction is
     a virtual displacement). Velocities: one solve of
     `[[M, A^T], [A, 0]] [dv; mu] = [0; -(A qdot + a)]`.
+
+    Works with any diffrax solver, explicit or implicit. A first-same-as-last solver
+    (Tsit5, Dopri5) re-evaluates the vector field at the projected state at the start
+    of each step (one more evaluation per step), so no stale derivative is reused.
     """
 
     iterations: int = 3
@@ -79,6 +84,28 @@ def project_state(system, q, qd, t, args, iterations: int):
     return q, qd
 
 
+def resolve_implicit_tolerances(solver, stepsize_controller):
+    """Give an implicit solver's root finder the step-size controller's tolerances.
+
+    What `diffrax.diffeqsolve` does itself for a bare implicit solver, done before
+    wrapping it in `ProjectedSolver` (diffrax cannot reach into the wrapper).
+    """
+    if not isinstance(solver, diffrax.AbstractImplicitSolver) or not isinstance(
+        stepsize_controller, diffrax.AbstractAdaptiveStepSizeController
+    ):
+        return solver
+    names = [
+        name
+        for name in ("rtol", "atol", "norm")
+        if getattr(solver.root_finder, name) is use_stepsize_tol
+    ]
+    return eqx.tree_at(
+        lambda s: tuple(getattr(s.root_finder, name) for name in names),
+        solver,
+        tuple(getattr(stepsize_controller, name) for name in names),
+    )
+
+
 class ProjectedSolver(diffrax.AbstractWrappedSolver):
     """A diffrax solver followed by a projection onto the constraint manifold.
 
@@ -93,6 +120,13 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
     @property
     def term_structure(self):
         return self.solver.term_structure
+
+    @property
+    def root_finder(self):
+        # diffrax forwards `isinstance(..., AbstractImplicitSolver)` to the wrapped
+        # solver and then reads `root_finder`; `simulate` has already filled in its
+        # tolerances (`resolve_implicit_tolerances`).
+        return self.solver.root_finder
 
     @property
     def interpolation_cls(self):  # pyright: ignore
@@ -115,8 +149,12 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
         return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        # `made_jump=True`: the state was moved by the previous projection, so a
+        # first-same-as-last solver (Tsit5, Dopri5) must not reuse the derivative it
+        # stored at the unprojected state. Costs one more evaluation per step.
+        del made_jump
         y1, y_error, dense_info, solver_state, result = self.solver.step(
-            terms, t0, t1, y0, args, solver_state, made_jump
+            terms, t0, t1, y0, args, solver_state, True
         )
         q, qd = y1
         y1 = project_state(self.system, q, qd, t1, args, self.iterations)

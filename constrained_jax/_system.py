@@ -24,6 +24,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint, Holonomic
 from ._kkt import AbstractSaddlePointSolver, RangeSpaceLDL
+from ._misc import inexact_asarray
 
 
 class LagrangianSystem(eqx.Module):
@@ -230,7 +231,7 @@ class LagrangianSystem(eqx.Module):
         not regular in a velocity direction the constraints leave free, or the
         constraints are redundant.
         """
-        q, qd = _as_float(q), _as_float(qd)
+        q, qd = inexact_asarray(q), inexact_asarray(qd)
         self.check(q, qd, t, args)
         qdd, lam, singular = self.solve_accelerations(q, qd, t, args)
         qdd, lam = eqx.error_if(
@@ -245,14 +246,7 @@ class LagrangianSystem(eqx.Module):
 
     def constraint_forces(self, q, qd, t, args=None) -> Float[Array, " n"]:
         """The generalised force of constraint `Q^c = A^T lambda`."""
-        q, qd = _as_float(q), _as_float(qd)
+        q, qd = inexact_asarray(q), inexact_asarray(qd)
         _, lam = self.accelerations(q, qd, t, args)
         jac = self.constraint_jacobian(q, jnp.asarray(t, q.dtype), args)
         return jac.T @ lam
-
-
-def _as_float(x) -> Array:
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.inexact):
-        x = x.astype(jnp.result_type(float))
-    return x

@@ -231,3 +231,97 @@ def test_bad_arguments():
         cjax.SaveAt()
     with pytest.raises(ValueError, match="same shape"):
         cjax.simulate(system, (0.0, 1.0), q0, qd0[:1], args)
+
+
+def test_singular_dynamics_is_reported():
+    """A constraint stated twice makes the KKT matrix singular: the run fails with
+    `RESULTS.singular_dynamics` (also when nothing but the final state is saved),
+    never with NaN states reported as success."""
+    base = pendulum.system()
+    system = cjax.LagrangianSystem(
+        base.lagrangian, (base.constraints[0], base.constraints[0])
+    )
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+    for saveat in (cjax.SaveAt(t1=True, multipliers=False), cjax.SaveAt(t1=True)):
+        traj = cjax.simulate(
+            system, (0.0, 1.0), q0, qd0, args, saveat=saveat, max_steps=64, throw=False
+        )
+        assert traj.result == cjax.RESULTS.singular_dynamics
+    with pytest.raises(eqx.EquinoxRuntimeError, match="singular"):
+        cjax.simulate(system, (0.0, 1.0), q0, qd0, args, max_steps=64)
+
+
+def test_gradient_wrt_initial_state_matches_finite_differences():
+    """d x(t1) / d(q0, qd0) through the simulation, along admissible perturbations
+    (the initial state is built from (theta0, thetadot0), so it stays consistent)."""
+    args = pendulum.default_args()
+
+    @jax.jit
+    def final_x(p):
+        q0, qd0 = pendulum.state(p[0], p[1], args)
+        traj = cjax.simulate(
+            pendulum.system(),
+            (0.0, 0.7),
+            q0,
+            qd0,
+            args,
+            stepsize_controller=TIGHT,
+            saveat=cjax.SaveAt(t1=True, multipliers=False, energy=False),
+        )
+        return traj.q[-1, 0] + 0.3 * traj.qd[-1, 1]
+
+    p = jnp.array([0.6, -0.4])
+    grad = jax.jit(jax.grad(final_x))(p)
+    fd = finite_difference_grad(final_x, p, rel_step=1e-5)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-8)
+
+
+def test_projection_with_an_implicit_solver():
+    """`Projection` wraps an implicit diffrax solver (Kvaerno5): after a whole
+    closed-form period the pendulum is back at its start, and the constraint holds to
+    round-off at every saved time."""
+    args = pendulum.default_args()
+    theta0 = jnp.asarray(0.9)
+    q0, qd0 = pendulum.state(theta0, jnp.asarray(0.0), args)
+    t1 = pendulum.period(theta0, args)
+    traj = cjax.simulate(
+        pendulum.system(),
+        (0.0, t1),
+        q0,
+        qd0,
+        args,
+        solver=diffrax.Kvaerno5(),
+        stabilization=cjax.Projection(),
+        stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-9),
+        saveat=cjax.SaveAt(ts=jnp.linspace(0.0, 1.0, 6) * t1, multipliers=False),
+    )
+    np.testing.assert_allclose(traj.q[-1], q0, atol=1e-6)
+    assert np.max(np.abs(traj.violation["position"])) < 1e-13
+    assert np.max(np.abs(traj.violation["velocity"])) < 1e-12
+
+
+def test_float32_simulation():
+    """Float32 inputs run in float32 end to end, at float32 accuracy: a quarter of a
+    closed-form period later the released pendulum is at the bottom, x = 0."""
+    args = {k: jnp.asarray(v, jnp.float32) for k, v in pendulum.default_args().items()}
+    theta0 = jnp.asarray(0.5, jnp.float32)
+    q0, qd0 = pendulum.state(theta0, jnp.zeros_like(theta0), args)
+    quarter = 0.25 * pendulum.period(theta0, args)
+    traj = cjax.simulate(
+        pendulum.system(),
+        (jnp.zeros_like(quarter), quarter),
+        q0,
+        qd0,
+        args,
+        stabilization=cjax.Projection(),
+        stepsize_controller=diffrax.PIDController(rtol=1e-5, atol=1e-5),
+        saveat=cjax.SaveAt(t1=True),
+    )
+    assert traj.q.dtype == jnp.float32 and traj.multipliers.dtype == jnp.float32
+    assert traj.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(traj.q[-1, 0], 0.0, atol=1e-4)
+    np.testing.assert_allclose(traj.q[-1, 1], -args["l"], rtol=1e-5)
+    # The tension at the bottom, m g (3 - 2 cos theta0), is the multiplier's magnitude.
+    tension = args["m"] * args["g"] * (3 - 2 * jnp.cos(theta0))
+    np.testing.assert_allclose(-traj.multipliers[-1, 0], tension, rtol=1e-4)
