@@ -1,0 +1,591 @@
+"""Constrained variational problems: extremize `F[y] = int L(y, y', x) dx`.
+
+The functional is extremized over functions `y(x)` (one or `n` of them) on
+`[xL, xR]` with fixed end values, subject to
+
+- integral constraints `int N_j(y, y', x) dx = C_j`, each with a constant multiplier
+  `lambda_j` (the extended Lagrangian is `L* = L + sum_j lambda_j N_j`), and
+- holonomic constraints `G_j(y, x) = 0` on the whole interval, each with a multiplier
+  function `lambda_j(x)`.
+
+The Euler-Lagrange equations, in the library's sign convention, are
+
+    d/dx (dL*/dy') - dL*/dy = sum_j lambda_j(x) dG_j/dy,    G_j = 0,
+    int N_j dx = C_j.
+
+The direct method ([`constrained_jax.solve_functional`][]) discretizes `y` and the
+integrals ([`constrained_jax.Chebyshev`][], [`constrained_jax.PiecewiseLinear`][]) and
+solves the resulting finite constrained extremization with the KKT machinery of
+[`constrained_jax.extremize`][] (the same residual, Newton iteration and
+implicit-function derivatives).
+"""
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
+
+from ._custom_types import Args, Scalar
+from ._discretization import AbstractDiscretization, Chebyshev
+from ._extremize import _primal, _rewrite
+from ._kkt import AbstractKKTSolver, kkt_residual, Newton
+from ._linalg import dense_factor, dense_solve
+from ._misc import all_finite, as_traced_args, check_max_steps
+from ._results import RESULTS
+
+
+LagrangianFn = Callable[[Any, Any, Scalar, Args], Scalar]
+"""`L(y, y', x, args) -> scalar`."""
+
+
+def _float_dtype(*values):
+    dtype = jnp.result_type(*values)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        dtype = jnp.result_type(float)
+    return dtype
+
+
+class IntegralConstraint(eqx.Module):
+    """The integral constraint `int_{xL}^{xR} N(y, y', x, args) dx = C`.
+
+    **Arguments:**
+
+    - `integrand`: `N(y, y', x, args) -> scalar`, with `y`, `y'` shaped like the
+        boundary values of the [`constrained_jax.Functional`][].
+    - `value`: the constant `C`: a number, an array (closed over, it is
+        differentiable), or a callable `C(args)` reading it from the parameters.
+    """
+
+    integrand: Callable
+    value: ArrayLike | Callable
+
+    def target(self, args, dtype) -> Scalar:
+        value = self.value(args) if callable(self.value) else self.value
+        value = jnp.asarray(value)
+        if value.shape != ():
+            raise ValueError(
+                f"`IntegralConstraint(..., value)` must be a scalar, got shape "
+                f"{value.shape}."
+            )
+        return value.astype(dtype)
+
+
+class Functional(eqx.Module):
+    """The functional `F[y] = int_{xL}^{xR} L(y, y', x, args) dx` and its constraints.
+
+    **Arguments:**
+
+    - `lagrangian`: `L(y, y', x, args) -> scalar`. `y` and `y'` are scalars when the
+        boundary values are scalars (one function), arrays of shape `(n,)` otherwise.
+    - `interval`: `(xL, xR)` with `xL < xR`.
+    - `boundary`: `(y(xL), y(xR))`, both scalars or both of shape `(n,)`.
+    - `integral_constraints`: a tuple of [`constrained_jax.IntegralConstraint`][].
+    - `holonomic`: `G(y, x, args) -> (m,)` (a scalar means one constraint), imposed at
+        every `x`; or `None`. The end values must satisfy it.
+
+    Arrays in `interval`, `boundary` and the constraint values may be traced: the
+    solution is differentiable with respect to them.
+    """
+
+    lagrangian: Callable
+    interval: tuple[Scalar, Scalar]
+    boundary: tuple[Float[Array, "..."], Float[Array, "..."]]
+    integral_constraints: tuple[IntegralConstraint, ...]
+    holonomic: Callable | None
+
+    def __init__(
+        self,
+        lagrangian: LagrangianFn,
+        interval: tuple[ArrayLike, ArrayLike],
+        boundary: tuple[ArrayLike, ArrayLike],
+        integral_constraints: tuple[IntegralConstraint, ...] = (),
+        holonomic: Callable | None = None,
+    ):
+        if not callable(lagrangian):
+            raise ValueError("`lagrangian` must be a callable L(y, y', x, args).")
+        if holonomic is not None and not callable(holonomic):
+            raise ValueError("`holonomic` must be a callable G(y, x, args) or None.")
+        if isinstance(integral_constraints, IntegralConstraint):
+            integral_constraints = (integral_constraints,)
+        integral_constraints = tuple(integral_constraints)
+        for c in integral_constraints:
+            if not isinstance(c, IntegralConstraint):
+                raise ValueError(
+                    "`integral_constraints` must be a tuple of "
+                    f"`cjax.IntegralConstraint(N, C)`, got {type(c).__name__}."
+                )
+        if not (isinstance(interval, (tuple, list)) and len(interval) == 2):
+            raise ValueError("`interval` must be a pair (xL, xR).")
+        if not (isinstance(boundary, (tuple, list)) and len(boundary) == 2):
+            raise ValueError("`boundary` must be a pair (y(xL), y(xR)).")
+        yl, yr = (jnp.asarray(b) for b in boundary)
+        if yl.shape != yr.shape or yl.ndim > 1:
+            raise ValueError(
+                "The boundary values (y(xL), y(xR)) must both be scalars (one "
+                "function) or both have shape (n,) (n functions); got shapes "
+                f"{yl.shape} and {yr.shape}."
+            )
+        if yl.shape == (0,):
+            raise ValueError("The boundary values are empty: there is no function.")
+        dtype = _float_dtype(yl, yr)
+        xl, xr = (jnp.asarray(x) for x in interval)
+        if xl.shape != () or xr.shape != ():
+            raise ValueError("`interval` must hold two scalars (xL, xR).")
+        try:
+            ordered = bool(xl < xr)
+        except jax.errors.ConcretizationTypeError:
+            ordered = True  # traced: cannot be checked here
+        if not ordered:
+            raise ValueError(f"`interval` must have xL < xR, got ({xl}, {xr}).")
+        self.lagrangian = lagrangian
+        self.interval = (xl.astype(dtype), xr.astype(dtype))
+        self.boundary = (yl.astype(dtype), yr.astype(dtype))
+        self.integral_constraints = integral_constraints
+        self.holonomic = holonomic
+
+    @property
+    def num_components(self) -> int:
+        """`n`, the number of functions."""
+        return 1 if self.boundary[0].ndim == 0 else self.boundary[0].shape[0]
+
+    def extended_lagrangian(self, multipliers: Float[Array, " k"]) -> LagrangianFn:
+        """`L* = L + sum_j lambda_j N_j`, for the given constant multipliers.
+
+        Its Euler-Lagrange equations (see [`constrained_jax.euler_lagrange`][]) are
+        those of the constrained problem; when `L` and the `N_j` do not depend on `x`
+        its first integral ([`constrained_jax.first_integral`][]) is conserved.
+        """
+        multipliers = jnp.asarray(multipliers)
+        if multipliers.shape != (len(self.integral_constraints),):
+            raise ValueError(
+                "`multipliers` must have one entry per integral constraint, shape "
+                f"({len(self.integral_constraints)},), got {multipliers.shape}."
+            )
+
+        def lagrangian_star(y, yp, x, args):
+            out = self.lagrangian(y, yp, x, args)
+            for lam, c in zip(multipliers, self.integral_constraints, strict=True):
+                out = out + lam * c.integrand(y, yp, x, args)
+            return out
+
+        return lagrangian_star
+
+
+def euler_lagrange(lagrangian: LagrangianFn) -> Callable:
+    """The Euler-Lagrange expression of `L`, by autodiff.
+
+    Returns `el(y, y', y'', x, args)`, the value of
+
+        d/dx (dL/dy') - dL/dy
+          = d2L/dy'dy y' + d2L/dy'2 y'' + d2L/dy'dx - dL/dy,
+
+    shaped like `y`. It vanishes along an extremal of `int L dx` (use the extended
+    Lagrangian `L*` of a problem with integral constraints,
+    [`constrained_jax.Functional.extended_lagrangian`][]); with holonomic
+    constraints it equals `sum_j lambda_j(x) dG_j/dy`.
+    """
+
+    def el(y, yp, ypp, x, args):
+        dl_dy = jax.grad(lagrangian, argnums=0)
+        dl_dyp = jax.grad(lagrangian, argnums=1)
+        _, ddx = jax.jvp(
+            lambda y_, yp_, x_: dl_dyp(y_, yp_, x_, args),
+            (y, yp, x),
+            (yp, ypp, jnp.ones_like(x)),
+        )
+        return ddx - dl_dy(y, yp, x, args)
+
+    return el
+
+
+def first_integral(lagrangian: LagrangianFn) -> Callable:
+    """`H(y, y', x, args) = y' . dL/dy' - L` (the "Hamiltonian" of a functional).
+
+    If `L` does not depend on `x`, `dH/dx = -dL/dx = 0` along every extremal, so `H`
+    is constant along the solution (use the extended Lagrangian `L*` when there are
+    integral constraints).
+    """
+
+    def hamiltonian(y, yp, x, args):
+        dl_dyp = jax.grad(lagrangian, argnums=1)(y, yp, x, args)
+        return jnp.sum(yp * dl_dyp) - lagrangian(y, yp, x, args)
+
+    return hamiltonian
+
+
+@eqx.filter_jit
+def _evaluate(discretization, interval, values, x, order: int, interior: bool):
+    """The interpolant through nodal `values` (or a derivative) at the points `x`."""
+    fn = lambda x_: discretization.interpolate(
+        interval, values, x_, derivative=order, interior=interior
+    )
+    out = jax.vmap(fn)(x.reshape(-1))
+    return out.reshape(x.shape + values.shape[1:])
+
+
+class MultiplierFunction(eqx.Module):
+    """A holonomic multiplier function `x -> lambda(x)`, shape `(m,)` (or scalar).
+
+    Interpolates the multipliers at the interior nodes with the discretization's own
+    interpolant (extrapolated to the ends). `values` holds them at `nodes`.
+    """
+
+    nodes: Float[Array, " M"]
+    values: Float[Array, "M ..."]
+    interval: tuple[Scalar, Scalar]
+    discretization: AbstractDiscretization
+
+    def __call__(self, x: ArrayLike) -> Float[Array, "..."]:
+        x = jnp.asarray(x, self.values.dtype)
+        return _evaluate(self.discretization, self.interval, self.values, x, 0, True)
+
+
+class FunctionalMultipliers(eqx.Module):
+    """The multipliers of a [`constrained_jax.FunctionalSolution`][].
+
+    **Attributes:**
+
+    - `integral`: the constants `lambda_j` of the integral constraints, shape `(k,)`.
+    - `holonomic`: a [`constrained_jax.MultiplierFunction`][] `x -> lambda(x)`, or
+        `None` without holonomic constraints. Convention:
+        `d/dx(dL*/dy') - dL*/dy = sum_j lambda_j(x) dG_j/dy`.
+    """
+
+    integral: Float[Array, " k"]
+    holonomic: MultiplierFunction | None
+
+
+class FunctionalSolution(eqx.Module):
+    """The solution of [`constrained_jax.solve_functional`][].
+
+    **Attributes:**
+
+    - `x`: the nodes, shape `(N,)`, ends included.
+    - `y`: the values at the nodes, shape `(N,)` (one function) or `(N, n)`.
+    - `multipliers`: a [`constrained_jax.FunctionalMultipliers`][].
+    - `value`: `F[y] = int L dx` (without the constraint terms).
+    - `result`: a [`constrained_jax.RESULTS`][] member.
+    - `stats`: `num_steps`, `max_steps`, `kkt_residual` (root mean square of the
+        discrete KKT residual).
+
+    Call it, `sol(x)`, for the interpolant at any `x` in `[xL, xR]` (scalar or
+    array); `sol.derivative(x, order)` for its derivatives.
+    """
+
+    x: Float[Array, " N"]
+    y: Float[Array, " N ..."]
+    multipliers: FunctionalMultipliers
+    value: Scalar
+    result: RESULTS
+    stats: dict[str, Any]
+    interval: tuple[Scalar, Scalar]
+    discretization: AbstractDiscretization
+
+    def derivative(self, x: ArrayLike, order: int = 1) -> Float[Array, "..."]:
+        """The `order`-th derivative of the interpolant at `x`."""
+        if not isinstance(order, int) or order < 0:
+            raise ValueError(f"`order` must be a non-negative int, got {order!r}.")
+        x = jnp.asarray(x, self.y.dtype)
+        return _evaluate(self.discretization, self.interval, self.y, x, order, False)
+
+    def __call__(self, x: ArrayLike) -> Float[Array, "..."]:
+        return self.derivative(x, order=0)
+
+
+# ---------------------------------------------------------------------------------
+# The direct method
+# ---------------------------------------------------------------------------------
+
+
+def _check_scalar(struct, what: str, fix: str):
+    if not (isinstance(struct, jax.ShapeDtypeStruct) and struct.shape == ()):
+        shape = getattr(struct, "shape", type(struct).__name__)
+        raise ValueError(f"{what} must return a scalar, but it returned {shape}. {fix}")
+    if not jnp.issubdtype(struct.dtype, jnp.floating):
+        raise ValueError(f"{what} must return a floating-point scalar.")
+
+
+class _Problem(eqx.Module):
+    """The discretized functional: unknowns are the interior values (node-major)."""
+
+    functional: Functional
+    discretization: AbstractDiscretization
+
+    @property
+    def shape(self):
+        return self.functional.boundary[0].shape
+
+    def full_values(self, x_flat):
+        yl, yr = self.functional.boundary
+        n = self.functional.num_components
+        inner = x_flat.reshape(self.discretization.num_nodes - 2, n)
+        return jnp.concatenate([yl.reshape(1, n), inner, yr.reshape(1, n)], axis=0)
+
+    def integral(self, integrand, x_flat, args):
+        shape = self.shape
+        fn = lambda y, yp, x: integrand(y.reshape(shape), yp.reshape(shape), x, args)
+        return self.discretization.integrate(
+            fn, self.full_values(x_flat), self.functional.interval
+        )
+
+    def holonomic_values(self, x_flat, args):
+        """`G(y_i, x_i)` at the interior nodes, shape `(N - 2, m)`."""
+        shape = self.shape
+        n = self.functional.num_components
+        nodes = self.discretization.nodes(self.functional.interval)[1:-1]
+        inner = x_flat.reshape(-1, n)
+        g = jax.vmap(
+            lambda y, x: jnp.atleast_1d(
+                self.functional.holonomic(y.reshape(shape), x, args)
+            )
+        )(inner, nodes)
+        return g
+
+
+def _objective(x_flat, args):
+    problem, user_args = args
+    return problem.integral(problem.functional.lagrangian, x_flat, user_args)
+
+
+def _integral_constraints(x_flat, args):
+    problem, user_args = args
+    dtype = x_flat.dtype
+    return jnp.stack(
+        [
+            problem.integral(c.integrand, x_flat, user_args)
+            - c.target(user_args, dtype)
+            for c in problem.functional.integral_constraints
+        ]
+    )
+
+
+def _constraints(x_flat, args):
+    """`(w_i G(y_i, x_i) for interior i (node-major), int N_j - C_j)`."""
+    problem, user_args = args
+    parts = []
+    if problem.functional.holonomic is not None:
+        weights = problem.discretization.node_weights(problem.functional.interval)
+        g = problem.holonomic_values(x_flat, user_args)
+        parts.append((weights[1:-1, None] * g).reshape(-1))
+    if problem.functional.integral_constraints:
+        parts.append(_integral_constraints(x_flat, args))
+    return jnp.concatenate(parts)
+
+
+def solve_functional(
+    functional: Functional,
+    args: Args = None,
+    *,
+    discretization: AbstractDiscretization = Chebyshev(32),
+    solver: AbstractKKTSolver | None = None,
+    y0: Callable | ArrayLike | None = None,
+    max_steps: int = 256,
+    throw: bool = True,
+) -> FunctionalSolution:
+    """Extremize a [`constrained_jax.Functional`][] by the direct method.
+
+    The discretization turns `y` into its values at `N` nodes and every integral into
+    a quadrature, giving the finite problem: extremize `F_h(Y)` over the interior
+    values `Y` subject to `int_h N_j = C_j` and `w_i G(y_i, x_i) = 0` at the interior
+    nodes. Its KKT system,
+
+        grad F_h + sum_j lambda_j grad (int_h N_j) + sum_i mu_i w_i grad G_i = 0,
+
+    is solved by the KKT machinery of [`constrained_jax.extremize`][] (Newton on the
+    KKT residual with an affine-covariant line search). The discrete multipliers
+    approximate the continuous ones: `lambda_j` are the integral multipliers, and
+    `mu_i -> lambda(x_i)`, the holonomic multiplier function at the nodes, in the
+    convention `d/dx(dL*/dy') - dL*/dy = sum_j lambda_j(x) dG_j/dy`.
+
+    **Arguments:**
+
+    - `functional`: the [`constrained_jax.Functional`][].
+    - `args`: parameters passed last to `L`, `N_j`, `G` and callable `C_j`; traced,
+        so changing them never recompiles.
+    - `discretization`: [`constrained_jax.Chebyshev`][] (spectral; default with 32
+        nodes) or [`constrained_jax.PiecewiseLinear`][] (second order, linear cost).
+    - `solver`: an [`constrained_jax.AbstractKKTSolver`][]. By default
+        `Newton(rtol=1e-10, atol=1e-10, linear_solver=...)` with the linear solver that
+        suits the discretization (`discretization.linear_solver(n, m, k)`: dense LU
+        for `Chebyshev`, the linear-cost
+        [`constrained_jax.BorderedBlockTridiagonal`][] for `PiecewiseLinear`).
+    - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
+        or the values at the nodes, shape `(N,)` or `(N, n)`; by default the straight
+        line between the end values. Newton's method finds the extremal nearest to it.
+    - `max_steps`: the most Newton steps.
+    - `throw`: raise on failure if `True`; otherwise report it in `result`.
+
+    **Returns:**
+
+    A [`constrained_jax.FunctionalSolution`][].
+
+    Differentiable with respect to `args` and to arrays in `functional` (implicit
+    function theorem on the discrete KKT system; one more linear solve per backward
+    pass). Composes with `jax.jit` and `jax.vmap`.
+    """
+    args = as_traced_args(args)
+    return _solve_functional(
+        functional, args, discretization, solver, y0, max_steps, throw
+    )
+
+
+@eqx.filter_jit
+def _solve_functional(functional, args, discretization, solver, y0, max_steps, throw):
+    if not isinstance(functional, Functional):
+        raise ValueError(
+            "`functional` must be a `cjax.Functional`, got "
+            f"{type(functional).__name__}."
+        )
+    if not isinstance(discretization, AbstractDiscretization):
+        raise ValueError(
+            "`discretization` must be a discretization object such as "
+            "`cjax.Chebyshev(32)` or `cjax.PiecewiseLinear(1001)`, got "
+            f"{discretization!r}."
+        )
+    if solver is not None and not isinstance(solver, AbstractKKTSolver):
+        raise ValueError(
+            "`solver` must be a constrained_jax solver such as `cjax.Newton()`, got "
+            f"{type(solver).__name__}."
+        )
+    check_max_steps(max_steps)
+
+    problem = _Problem(functional, discretization)
+    dtype = functional.boundary[0].dtype
+    shape = functional.boundary[0].shape
+    n = functional.num_components
+    num_nodes = discretization.num_nodes
+    nodes = discretization.nodes(functional.interval)
+    yl, yr = functional.boundary
+    zero = jnp.zeros(shape, dtype)
+
+    # Structure checks (trace time).
+    _check_scalar(
+        jax.eval_shape(functional.lagrangian, zero, zero, nodes[0], args),
+        "The Lagrangian L(y, y', x, args)",
+        "Write L as a scalar density, e.g. sum the contributions of the components.",
+    )
+    for j, c in enumerate(functional.integral_constraints):
+        _check_scalar(
+            jax.eval_shape(c.integrand, zero, zero, nodes[0], args),
+            f"The integrand N_{j}(y, y', x, args) of integral constraint {j}",
+            "Write one IntegralConstraint per scalar constraint.",
+        )
+        c.target(args, dtype)
+    m = 0
+    if functional.holonomic is not None:
+        g_struct = jax.eval_shape(functional.holonomic, zero, nodes[0], args)
+        if not isinstance(g_struct, jax.ShapeDtypeStruct) or g_struct.ndim > 1:
+            raise ValueError(
+                "The holonomic constraints G(y, x, args) must return a scalar or an "
+                "array of shape (m,): stack them with `jnp.stack([g1, g2])`."
+            )
+        m = 1 if g_struct.ndim == 0 else g_struct.shape[0]
+        if m == 0:
+            raise ValueError("`holonomic` returned no constraints: pass None instead.")
+        if m >= n:
+            raise ValueError(
+                f"There are m = {m} holonomic constraints on n = {n} functions: at "
+                "least one function must stay free (m < n). With m >= n the curve is "
+                "fixed by the constraints alone."
+            )
+    k = len(functional.integral_constraints)
+    num_unknowns = (num_nodes - 2) * n
+    if k > num_unknowns - (num_nodes - 2) * m:
+        raise ValueError(
+            f"{k} integral constraints but only {num_unknowns - (num_nodes - 2) * m} "
+            "free unknowns: use more nodes."
+        )
+
+    # The starting guess.
+    if y0 is None:
+        s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
+        guess = yl.reshape(1, n) + s[:, None] * (yr - yl).reshape(1, n)
+    elif callable(y0):
+        guess = jax.vmap(lambda x: jnp.asarray(y0(x), dtype).reshape(n))(nodes)
+    else:
+        guess = jnp.asarray(y0, dtype)
+        if guess.shape not in ((num_nodes, n), (num_nodes,) + shape):
+            raise ValueError(
+                "`y0` must be a callable y0(x) or the values at the "
+                f"{num_nodes} nodes, shape {(num_nodes,) + shape}; got {guess.shape}."
+            )
+        guess = guess.reshape(num_nodes, n)
+    x0 = guess[1:-1].reshape(-1)
+
+    if solver is None:
+        solver = Newton(linear_solver=discretization.linear_solver(n, m, k))
+    full_args = (problem, args)
+    objective = eqx.filter_closure_convert(_objective, x0, full_args)
+    has_constraints = m > 0 or k > 0
+    constraints = (
+        eqx.filter_closure_convert(_constraints, x0, full_args)
+        if has_constraints
+        else None
+    )
+
+    start_ok = all_finite((x0, args, functional))
+    x_safe = jnp.where(start_ok, x0, 0.0)
+    lam_hol = jnp.zeros(((num_nodes - 2) * m,), dtype)
+    if k > 0:
+        # Least-squares integral multipliers at the start: -(J J^T)^{-1} J grad F.
+        grad0 = jax.grad(_objective)(x_safe, full_args)
+        jac = jax.jacrev(_integral_constraints)(x_safe, full_args)
+        factors = dense_factor(jac @ jac.T, unroll_max=12)
+        lam_int = -dense_solve(factors, jac @ grad0, unroll_max=12)
+        lam_int = jnp.where(jnp.all(jnp.isfinite(lam_int)), lam_int, 0.0)
+    else:
+        lam_int = jnp.zeros((0,), dtype)
+    z0 = jax.lax.stop_gradient(jnp.concatenate([x0, lam_hol, lam_int]))
+
+    inputs = (
+        objective,
+        constraints,
+        solver,
+        z0,
+        full_args,
+        num_unknowns,
+        max_steps,
+        start_ok,
+    )
+    z, (result, stats) = optx.internal.implicit_jvp(
+        _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
+    )
+    x_flat = z[:num_unknowns]
+    mu = z[num_unknowns : num_unknowns + (num_nodes - 2) * m]
+    lam = z[num_unknowns + (num_nodes - 2) * m :]
+    values = problem.full_values(x_flat)
+    value = objective(x_flat, full_args)
+
+    zs = jax.lax.stop_gradient(z)
+    residual = kkt_residual(objective, constraints, zs, full_args, num_unknowns)
+    stats = {
+        **stats,
+        "max_steps": max_steps,
+        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
+    }
+    if m > 0:
+        g_shape = jax.eval_shape(functional.holonomic, zero, nodes[0], args).shape
+        mu_values = mu.reshape((num_nodes - 2,) + g_shape)
+        holonomic = MultiplierFunction(
+            nodes[1:-1], mu_values, functional.interval, discretization
+        )
+    else:
+        holonomic = None
+    sol = FunctionalSolution(
+        x=nodes,
+        y=values.reshape((num_nodes,) + shape),
+        multipliers=FunctionalMultipliers(integral=lam, holonomic=holonomic),
+        value=value,
+        result=result,
+        stats=stats,
+        interval=functional.interval,
+        discretization=discretization,
+    )
+    if throw:
+        sol = result.error_if(sol, result != RESULTS.successful)
+    return sol
