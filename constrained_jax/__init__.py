@@ -12,10 +12,29 @@ from ._constraints import (
     Holonomic as Holonomic,
     Pfaffian as Pfaffian,
 )
+from ._banded import (
+    BorderedBlockTridiagonal as BorderedBlockTridiagonal,
+    EquilibratedDenseLU as EquilibratedDenseLU,
+)
+from ._discretization import (
+    AbstractDiscretization as AbstractDiscretization,
+    Chebyshev as Chebyshev,
+    PiecewiseLinear as PiecewiseLinear,
+)
 from ._extremize import (
     extremize as extremize,
     EXTREMUM as EXTREMUM,
     Extremum as Extremum,
+)
+from ._functional import (
+    euler_lagrange as euler_lagrange,
+    first_integral as first_integral,
+    Functional as Functional,
+    FunctionalMultipliers as FunctionalMultipliers,
+    FunctionalSolution as FunctionalSolution,
+    IntegralConstraint as IntegralConstraint,
+    MultiplierFunction as MultiplierFunction,
+    solve_functional as solve_functional,
 )
 from ._integrability import (
     exterior_derivative as exterior_derivative,

@@ -4,6 +4,7 @@ writes it (the function or Lagrangian, the constraints, the closed-form answer),
 """
 
 from . import (
+    catenary as catenary,
     cylinder_volume as cylinder_volume,
     pendulum as pendulum,
     rolling_disk as rolling_disk,
