@@ -47,6 +47,15 @@ class AbstractConstraint(eqx.Module):
         fn = lambda q_, t_: self.velocity_residual(q_, qd, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
 
+    def position_rows(self, q, t, args) -> Float[Array, " k"]:
+        """`G_j(q, t)` for holonomic rows and `0` for the others, one per row of `A`:
+        the position-level residual that stabilization drives to zero."""
+        return jnp.zeros((self.num_constraints(q.shape[0], args, q.dtype),), q.dtype)
+
+    def holonomic_residual(self, q, t, args) -> Float[Array, " k_holonomic"]:
+        """`G(q, t)` of the holonomic rows only (none for Pfaffian constraints)."""
+        return jnp.zeros((0,), q.dtype)
+
 
 class Holonomic(AbstractConstraint):
     """Holonomic constraints `G(q, t, args) = 0`, shape `(k,)` (a scalar is `k = 1`).
@@ -61,6 +70,12 @@ class Holonomic(AbstractConstraint):
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G(q, t)`."""
         return jnp.atleast_1d(self.fn(q, t, args))
+
+    def position_rows(self, q, t, args):
+        return self.position_residual(q, t, args)
+
+    def holonomic_residual(self, q, t, args):
+        return self.position_residual(q, t, args)
 
     def velocity_form(self, q, t, args):
         fn = lambda q_, t_: self.position_residual(q_, t_, args)
@@ -133,3 +148,90 @@ def _check_shape(kind, signature, out, n, ndim):
             f"single constraint); got {getattr(out, 'shape', type(out).__name__)}."
         )
     return 1 if out.ndim == 0 else out.shape[0]
+
+
+class Unilateral(AbstractConstraint):
+    """Constraints that can push but not pull: they hold while the multiplier of their
+    first row keeps the sign `sign`, and are released together when it crosses zero.
+
+    A contact is the example: the two cylinders touch while the normal force
+    `Q_r = lambda_1 >= 0`, and the no-slip condition ends with contact, so both rows
+    go into one `Unilateral`:
+
+    ```python
+    contact = cjax.Unilateral(
+        (cjax.Pfaffian(contact_row), cjax.Pfaffian(no_slip_row)),
+        sign=1.0,
+        gap=lambda q, t, args: q[0] - (args["R"] + args["a"]),
+    )
+    system = cjax.LagrangianSystem(L, constraints=contact)
+    ```
+
+    In a [`constrained_jax.LagrangianSystem`][] it acts like its member constraints
+    (their rows stacked in order). [`constrained_jax.simulate`][] watches
+    `sign * lambda_first_row`; when it falls through zero it ends the phase there
+    (the event time found by a root find), drops all the member constraints, and
+    continues with the others; with a `gap`, the free phase ends at re-contact, when
+    `gap(q, t, args)` falls through zero.
+
+    **Arguments:**
+
+    - `constraints`: a constraint or a sequence of them (`Holonomic`, `Pfaffian`);
+        the first row of the first one carries the watched multiplier.
+    - `sign`: `+1.0` if the constraint can only push with a positive multiplier (in
+        the convention `Q^c = A^T lambda`), `-1.0` for a negative one.
+    - `gap`: `gap(q, t, args) -> scalar`, positive while separated, or `None` (the free
+        phase then runs to the end).
+    """
+
+    constraints: tuple[AbstractConstraint, ...]
+    sign: float = 1.0
+    gap: Callable | None = None
+
+    def __init__(self, constraints, sign: float = 1.0, gap: Callable | None = None):
+        if isinstance(constraints, AbstractConstraint):
+            constraints = (constraints,)
+        constraints = tuple(constraints)
+        if not constraints:
+            raise ValueError("`Unilateral` needs at least one constraint.")
+        for c in constraints:
+            if not isinstance(c, (Holonomic, Pfaffian)):
+                raise ValueError(
+                    "`Unilateral` groups `cjax.Holonomic` and `cjax.Pfaffian` "
+                    f"constraints; got {type(c).__name__}."
+                )
+        if sign not in (1.0, -1.0):
+            raise ValueError(f"`sign` must be +1.0 or -1.0, got {sign!r}.")
+        if gap is not None and not callable(gap):
+            raise ValueError("`gap` must be a callable gap(q, t, args) or None.")
+        self.constraints = constraints
+        self.sign = float(sign)
+        self.gap = gap
+
+    def velocity_form(self, q, t, args):
+        parts = [c.velocity_form(q, t, args) for c in self.constraints]
+        return (
+            jnp.concatenate([p[0] for p in parts]),
+            jnp.concatenate([p[1] for p in parts]),
+        )
+
+    def velocity_residual(self, q, qd, t, args):
+        return jnp.concatenate(
+            [c.velocity_residual(q, qd, t, args) for c in self.constraints]
+        )
+
+    def acceleration_bias(self, q, qd, t, args):
+        return jnp.concatenate(
+            [c.acceleration_bias(q, qd, t, args) for c in self.constraints]
+        )
+
+    def position_rows(self, q, t, args):
+        return jnp.concatenate([c.position_rows(q, t, args) for c in self.constraints])
+
+    def holonomic_residual(self, q, t, args):
+        return jnp.concatenate(
+            [c.holonomic_residual(q, t, args) for c in self.constraints]
+        )
+
+    def num_constraints(self, n, args, dtype=None):
+        return sum(c.num_constraints(n, args, dtype) for c in self.constraints)

@@ -10,8 +10,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import optimistix as optx
+from jaxtyping import Array, Bool, Float
 
+from ._constraints import Unilateral
 from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
 from ._results import RESULTS
 from ._stabilization import (
@@ -64,7 +66,12 @@ class Trajectory(eqx.Module):
     - `violation`: `{"position": (T, k_holonomic), "velocity": (T, k)}`, or `None`.
     - `result`: a [`constrained_jax.RESULTS`][] member.
     - `stats`: diffrax's statistics (steps, accepted and rejected steps, function
-        evaluations).
+        evaluations), summed over the phases.
+    - `release`: for a system with a [`constrained_jax.Unilateral`][] constraint, a
+        [`constrained_jax.Release`][] (when and where it let go, and re-contact);
+        `None` otherwise. In the free phase the released rows of `multipliers` are
+        `0`, and `violation` reports the released constraints' residuals as they are
+        (a gap, not an error).
     """
 
     ts: Float[Array, " T"]
@@ -76,6 +83,7 @@ class Trajectory(eqx.Module):
     violation: dict | None
     result: RESULTS
     stats: dict
+    release: "Release | None" = None
 
 
 def consistent_initial_state(
@@ -184,6 +192,90 @@ def simulate(
     )
 
 
+class Release(eqx.Module):
+    """What happened to the [`constrained_jax.Unilateral`][] constraint of a run.
+
+    **Attributes:**
+
+    - `released`: whether the constraint let go (its multiplier's sign flipped, or it
+        was already on the wrong side at the start).
+    - `at_start`: released at `t0` because the initial state is already past release
+        (the multiplier had the wrong sign): the whole run is free.
+    - `time`: the release time (`t1` if never released), found by a root find of the
+        multiplier along the attached motion.
+    - `q`, `qd`: the state at release (the final attached state if never released).
+    - `recontact`: whether the free phase ended at re-contact (`gap` fell through
+        zero); the run stops there, and later save times are `inf`.
+    - `recontact_time`: its time (`t1` if none).
+    """
+
+    released: Bool[Array, ""]
+    at_start: Bool[Array, ""]
+    time: Float[Array, ""]
+    q: Float[Array, " n"]
+    qd: Float[Array, " n"]
+    recontact: Bool[Array, ""]
+    recontact_time: Float[Array, ""]
+
+
+def _find_unilateral(system):
+    groups = [
+        (i, c) for i, c in enumerate(system.constraints) if isinstance(c, Unilateral)
+    ]
+    if len(groups) > 1:
+        raise ValueError(
+            "`simulate` handles one `cjax.Unilateral` constraint per system (release "
+            "events of several ones, in any order, are not implemented). Group the "
+            "constraints that release together into one `Unilateral`."
+        )
+    return groups[0] if groups else None
+
+
+def _run_phase(
+    system,
+    t0,
+    t1,
+    y0,
+    args,
+    solver,
+    stabilization,
+    stepsize_controller,
+    ts,
+    dt0,
+    max_steps,
+    adjoint,
+    event,
+):
+    """One diffrax solve; returns the states at `ts` (or `None`), the last state
+    reached and its time, the result and the stats."""
+    if isinstance(stabilization, Projection):
+        solver = resolve_implicit_tolerances(solver, stepsize_controller)
+        solver = ProjectedSolver(solver, system, stabilization.iterations)
+    terms = diffrax.ODETerm(_vector_field(system, stabilization))
+    subs = [diffrax.SubSaveAt(t1=True)]
+    if ts is not None:
+        subs.append(diffrax.SubSaveAt(ts=ts))
+    sol = diffrax.diffeqsolve(
+        terms,
+        solver,
+        t0,
+        t1,
+        dt0,
+        y0,
+        args,
+        saveat=diffrax.SaveAt(subs=subs),
+        stepsize_controller=stepsize_controller,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        event=event,
+        throw=False,
+    )
+    (q_end, qd_end) = sol.ys[0]
+    end = (sol.ts[0][0], q_end[0], qd_end[0])
+    saved = sol.ys[1] if ts is not None else None
+    return saved, end, sol.result, sol.stats
+
+
 @eqx.filter_jit
 def _simulate(
     system,
@@ -210,45 +302,141 @@ def _simulate(
         jnp.abs(position) <= consistency_tol * (1 + jnp.max(jnp.abs(q0)))
     ) & jnp.all(jnp.abs(velocity) <= consistency_tol * (1 + jnp.max(jnp.abs(qd0))))
 
-    if isinstance(stabilization, Projection):
-        solver = resolve_implicit_tolerances(solver, stepsize_controller)
-        solver = ProjectedSolver(solver, system, stabilization.iterations)
-    terms = diffrax.ODETerm(_vector_field(system, stabilization))
-    # The user's times, and the last state reached (where a failed run stopped).
-    diffrax_saveat = diffrax.SaveAt(
-        subs=[
-            diffrax.SubSaveAt(t0=saveat.t0, t1=saveat.t1, ts=saveat.ts),
-            diffrax.SubSaveAt(t1=True),
-        ]
-    )
-    sol = diffrax.diffeqsolve(
-        terms,
-        solver,
-        t0,
-        t1,
-        dt0,
-        (q0, qd0),
+    # The user's save times, as one array (diffrax's own t0/t1 flags are folded in).
+    parts = []
+    if saveat.t0:
+        parts.append(t0[None])
+    if saveat.ts is not None:
+        parts.append(jnp.asarray(saveat.ts, q0.dtype))
+    if saveat.t1:
+        parts.append(t1[None])
+    ts = jnp.concatenate(parts)
+
+    phase = lambda sys_, t_start, t_stop, y, ts_, event: _run_phase(
+        sys_,
+        t_start,
+        t_stop,
+        y,
         args,
-        saveat=diffrax_saveat,
-        stepsize_controller=stepsize_controller,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        throw=False,
+        solver,
+        stabilization,
+        stepsize_controller,
+        ts_,
+        dt0,
+        max_steps,
+        adjoint,
+        event,
     )
-    ts, ts_end = sol.ts
-    (q, qd), (q_end, qd_end) = sol.ys
+    found = _find_unilateral(system)
+    release = None
+    if found is None:
+        saved, end, result, stats = phase(system, t0, t1, (q0, qd0), ts, None)
+        q, qd = saved
+        result = RESULTS.promote(result)
+        systems_at = None
+    else:
+        index, group = found
+        free = system.without(index)
+        row = sum(
+            c.num_constraints(q0.shape[0], args, q0.dtype)
+            for c in system.constraints[:index]
+        )
+
+        def contact_force(t, y, args, **kwargs):
+            del kwargs
+            _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
+            return group.sign * lam[row]
+
+        at_start = contact_force(t0, (q0, qd0), args) < 0
+        release_event = diffrax.Event(
+            contact_force, root_finder=optx.Newton(rtol=1e-12, atol=1e-12)
+        )
+        # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
+        # phase if it already has the wrong sign).
+        # (diffrax needs t0 < t1: the empty phase is a tiny one, discarded.)
+        tiny = 64 * jnp.finfo(q0.dtype).eps * (1 + jnp.abs(t0))
+        t_attach_end = jnp.where(at_start, t0 + tiny, t1)
+        saved1, end1, result1, stats = phase(
+            system,
+            t0,
+            t_attach_end,
+            (q0, qd0),
+            jnp.clip(ts, t0, t_attach_end),
+            release_event,
+        )
+        released_by_event = result1 == diffrax.RESULTS.event_occurred
+        result1 = RESULTS.where(
+            released_by_event, RESULTS.successful, RESULTS.promote(result1)
+        )
+        t_rel, q_rel, qd_rel = end1
+        released = at_start | released_by_event
+        t_rel = jnp.where(at_start, t0, jnp.where(released, t_rel, t1))
+        q_rel = jnp.where(at_start, q0, q_rel)
+        qd_rel = jnp.where(at_start, qd0, qd_rel)
+        result1 = RESULTS.where(at_start, RESULTS.successful, result1)
+        # Phase 2, free: from the release to t1 (empty if never released), ending at
+        # re-contact if a gap is given.
+        recontact_event = None
+        if group.gap is not None:
+            # The gap is zero at release: re-contact is when it falls below
+            # -delta, delta = sqrt(eps) (1 + |q_release|), so that round-off right
+            # after release is not taken for a collision.
+            delta = jnp.sqrt(jnp.finfo(q0.dtype).eps) * (1 + jnp.max(jnp.abs(q_rel)))
+            recontact_event = diffrax.Event(
+                lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
+                root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
+            )
+        ts2 = jnp.clip(ts, t_rel, t1)
+        saved2, end2, result2, stats2 = phase(
+            free, t_rel, t1, (q_rel, qd_rel), ts2, recontact_event
+        )
+        recontact = result2 == diffrax.RESULTS.event_occurred
+        result2 = RESULTS.where(recontact, RESULTS.successful, RESULTS.promote(result2))
+        t_end2 = end2[0]
+        attached = (ts <= t_rel) & jnp.invert(at_start)
+        # After re-contact nothing is computed: those save times are inf.
+        beyond = recontact & (ts > t_end2)
+        pick = lambda a, b: jnp.where(
+            attached[:, None], a, jnp.where(beyond[:, None], jnp.inf, b)
+        )
+        q = pick(saved1[0], saved2[0])
+        qd = pick(saved1[1], saved2[1])
+        result = RESULTS.where(result1 == RESULTS.successful, result2, result1)
+        end = end2
+        stats = {
+            k: stats[k] + stats2[k] for k in stats if k in stats2 and k != "max_steps"
+        }
+        release = Release(
+            released=released,
+            at_start=at_start,
+            time=t_rel,
+            q=q_rel,
+            qd=qd_rel,
+            recontact=recontact,
+            recontact_time=jnp.where(recontact, t_end2, t1),
+        )
+        systems_at = (attached, free, group, row)
+
     if isinstance(stabilization, Projection):
         # Saved states between steps are interpolated: project them as well.
-        q, qd = jax.vmap(
-            lambda q_, qd_, t_: project_state(
-                system, q_, qd_, t_, args, stabilization.iterations
-            )
-        )(q, qd, ts)
+        def project(q_, qd_, t_, sys_):
+            return project_state(sys_, q_, qd_, t_, args, stabilization.iterations)
 
-    def derived(q_, qd_, t_):
+        if systems_at is None:
+            q, qd = jax.vmap(lambda a, b, c: project(a, b, c, system))(q, qd, ts)
+        else:
+            attached, free = systems_at[0], systems_at[1]
+            qa, qda = jax.vmap(lambda a, b, c: project(a, b, c, system))(q, qd, ts)
+            qf, qdf = jax.vmap(lambda a, b, c: project(a, b, c, free))(q, qd, ts)
+            q = jnp.where(attached[:, None], qa, qf)
+            qd = jnp.where(attached[:, None], qda, qdf)
+
+    def derived(q_, qd_, t_, sys_, keep_rows):
         out = {}
         if saveat.multipliers:
-            _, lam, singular = system.solve_accelerations(q_, qd_, t_, args)
+            _, lam, singular = sys_.solve_accelerations(q_, qd_, t_, args)
+            if keep_rows is not None:
+                lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
             out["multipliers"] = lam
             out["constraint_forces"] = system.constraint_jacobian(q_, t_, args).T @ lam
             out["singular"] = singular
@@ -259,15 +447,32 @@ def _simulate(
             out["velocity"] = system.velocity_violation(q_, qd_, t_, args)
         return out
 
-    extra = jax.vmap(derived)(q, qd, ts)
+    n = q0.shape[0]
+    system_k = sum(c.num_constraints(n, args, q0.dtype) for c in system.constraints)
+    if systems_at is None:
+        extra = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
+    else:
+        attached, free, group, row = systems_at
+        k_group = group.num_constraints(n, args, q0.dtype)
+        keep = jnp.asarray(
+            [j for j in range(system_k) if not row <= j < row + k_group], int
+        )
+        ea = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
+        ef = jax.vmap(lambda a, b, c: derived(a, b, c, free, keep))(q, qd, ts)
+        extra = jax.tree.map(
+            lambda a, b: jnp.where(attached.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
+            ea,
+            ef,
+        )
 
-    result = RESULTS.promote(sol.result)
     # A run that failed where the KKT matrix is singular failed because of it: the
     # vector field returns NaN there, so the steps were rejected until the budget ran
     # out. Checked at the last state reached (and at the saved states if available).
-    _, _, singular = system.solve_accelerations(q_end[0], qd_end[0], ts_end[0], args)
+    end_system = system if systems_at is None else systems_at[1]
+    _, _, singular = end_system.solve_accelerations(end[1], end[2], end[0], args)
     if saveat.multipliers:
-        singular = singular | jnp.any(extra["singular"])
+        reached = jnp.all(jnp.isfinite(q), axis=1)
+        singular = singular | jnp.any(extra["singular"] & reached)
     result = RESULTS.where(
         singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
     )
@@ -285,7 +490,8 @@ def _simulate(
         energy=extra.get("energy"),
         violation=violation,
         result=result,
-        stats=sol.stats,
+        stats=stats,
+        release=release,
     )
     if throw:
         traj = result.error_if(traj, result != RESULTS.successful)

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._constraints import AbstractConstraint, Holonomic
+from ._constraints import AbstractConstraint
 from ._kkt import AbstractSaddlePointSolver, RangeSpaceLDL
 from ._misc import inexact_asarray
 
@@ -118,6 +118,16 @@ class LagrangianSystem(eqx.Module):
                 )
         return n, k
 
+    def without(self, index: int) -> "LagrangianSystem":
+        """The same system with its constraint number `index` removed (released)."""
+        constraints = self.constraints[:index] + self.constraints[index + 1 :]
+        return LagrangianSystem(
+            self.lagrangian,
+            constraints,
+            self.forces,
+            linear_solver=self.linear_solver,
+        )
+
     # ------------------------------------------------------------------ physics
 
     def momentum(self, q, qd, t, args) -> Float[Array, " n"]:
@@ -157,11 +167,7 @@ class LagrangianSystem(eqx.Module):
 
     def position_violation(self, q, t, args) -> Float[Array, " k_holonomic"]:
         """`G(q, t)` for the holonomic constraints (nonholonomic ones have none)."""
-        parts = [
-            c.position_residual(q, t, args)
-            for c in self.constraints
-            if isinstance(c, Holonomic)
-        ]
+        parts = [c.holonomic_residual(q, t, args) for c in self.constraints]
         if not parts:
             return jnp.zeros((0,), q.dtype)
         return jnp.concatenate(parts)
@@ -195,14 +201,7 @@ class LagrangianSystem(eqx.Module):
         rows of `A`: the position-level residual used by stabilization."""
         if not self.constraints:
             return jnp.zeros((0,), q.dtype)
-        parts = []
-        for c in self.constraints:
-            if isinstance(c, Holonomic):
-                parts.append(c.position_residual(q, t, args))
-            else:
-                k = c.num_constraints(q.shape[0], args, q.dtype)
-                parts.append(jnp.zeros((k,), q.dtype))
-        return jnp.concatenate(parts)
+        return jnp.concatenate([c.position_rows(q, t, args) for c in self.constraints])
 
     def solve_accelerations(
         self, q, qd, t, args, bias_correction=None

@@ -32,7 +32,7 @@ no-slip constraint fixes `theta2`.
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._constraints import Pfaffian
+from .._constraints import Pfaffian, Unilateral
 from .._system import LagrangianSystem
 
 
@@ -53,6 +53,19 @@ def pfaffian_rows(q, t, args) -> Float[Array, "2 3"]:
 
 def system() -> LagrangianSystem:
     return LagrangianSystem(lagrangian, constraints=(Pfaffian(pfaffian_rows),))
+
+
+def contact_system() -> LagrangianSystem:
+    """The same system with the contact unilateral: both rows (contact and no slip)
+    hold while the normal force `Q_r = lambda_1 >= 0` and are released together at
+    the detachment angle; after that the cylinder flies freely until re-contact,
+    `r = R + a` again (the gap `r - (R + a)` falls through zero)."""
+    contact = Unilateral(
+        Pfaffian(pfaffian_rows),
+        sign=1.0,
+        gap=lambda q, t, args: q[0] - (args["R"] + args["a"]),
+    )
+    return LagrangianSystem(lagrangian, constraints=contact)
 
 
 def default_args(M=1.0, alpha=0.5, a=0.3, R=1.0, g=9.81) -> dict:
