@@ -11,6 +11,7 @@ from ._constraints import (
     AbstractConstraint as AbstractConstraint,
     Holonomic as Holonomic,
     Pfaffian as Pfaffian,
+    Unilateral as Unilateral,
 )
 from ._banded import (
     BorderedBlockTridiagonal as BorderedBlockTridiagonal,
@@ -59,6 +60,7 @@ from ._reduce import (
 from ._results import RESULTS as RESULTS
 from ._simulate import (
     consistent_initial_state as consistent_initial_state,
+    Release as Release,
     SaveAt as SaveAt,
     simulate as simulate,
     Trajectory as Trajectory,
