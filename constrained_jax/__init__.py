@@ -58,6 +58,7 @@ from ._reduce import (
     Reduction as Reduction,
 )
 from ._results import RESULTS as RESULTS
+from ._shooting import solve_shooting as solve_shooting
 from ._simulate import (
     consistent_initial_state as consistent_initial_state,
     Release as Release,

@@ -44,8 +44,9 @@ class AbstractDiscretization(eqx.Module):
     - `integrate(integrand, values, interval)`: `int integrand(y, y', x) dx` for the
         function with nodal values `values` (shape `(num_nodes, n)`);
     - `node_weights(interval)`: weights `w_i` such that `sum_i w_i f(x_i)` is the
-        matching quadrature of `f`. Pointwise constraints `G(y(x_i), x_i) = 0` are
-        imposed as `w_i G_i = 0`, so that their discrete multipliers approximate the
+        matching quadrature of `f`;
+    - `pointwise_constraint(G, values, interval)`: the discrete holonomic
+        constraint, scaled so that its discrete multipliers approximate the
         multiplier *function* `lambda(x_i)` (not `w_i lambda(x_i)`);
     - `interpolate(interval, values, x, derivative, interior)`: the represented
         function (or its derivative) anywhere in the interval, from its values at
@@ -67,6 +68,15 @@ class AbstractDiscretization(eqx.Module):
     @abc.abstractmethod
     def node_weights(self, interval: Interval) -> Float[Array, " N"]:
         """Quadrature weights at the nodes."""
+
+    @abc.abstractmethod
+    def pointwise_constraint(
+        self, constraint, values: Float[Array, "N n"], interval: Interval
+    ) -> Float[Array, "N-2 m"]:
+        """The discrete form of `G(y(x), x) = 0` on the whole interval, one row of
+        `m` equations per interior node, scaled so that the multiplier of row `i`
+        approximates the multiplier function `lambda(x_i)`: the discrete term
+        `sum_i mu_i . row_i` approximates `int lambda(x) . G(y(x), x) dx`."""
 
     @abc.abstractmethod
     def interpolate(
@@ -243,6 +253,26 @@ class Chebyshev(AbstractDiscretization):
         cc = p.T @ wq
         return (xr - xl) / 2 * jnp.asarray(cc, xl.dtype)
 
+    def pointwise_constraint(self, constraint, values, interval):
+        """Weak form: `int l_i(x) G(y(x), x) dx = 0` for the Lagrange basis `l_i` of
+        the interior nodes (degree `N - 3`), by the same Gauss quadrature as the
+        functional. Then `sum_i mu_i row_i = int lambda G dx` exactly for the
+        polynomial `lambda` with values `mu_i` at the interior nodes. (Collocating
+        `G = 0` at the nodes with Clenshaw-Curtis weights instead would halve the
+        exponential rate: lumping the mass matrix of `lambda` is exact only up to
+        degree `N - 1`.)"""
+        xl, xr = interval
+        dtype = values.dtype
+        tq, wq, p, _ = self._matrices()
+        t_int = self.reference_nodes()[1:-1]
+        p_int = interpolation_matrix(t_int, barycentric_weights(t_int), tq)
+        half = (xr - xl) / 2
+        xq = xl + half * (jnp.asarray(tq, dtype) + 1)
+        yq = jnp.asarray(p, dtype) @ values
+        gq = jax.vmap(constraint)(yq, xq)  # (M, m)
+        weighted = jnp.asarray(wq, dtype)[:, None] * gq
+        return half * (jnp.asarray(p_int.T, dtype) @ weighted)
+
     def interpolate(self, interval, values, x, derivative=0, interior=False):
         xl, xr = interval
         dtype = values.dtype
@@ -317,6 +347,14 @@ class PiecewiseLinear(AbstractDiscretization):
         w = jnp.full((self.num_nodes,), 1.0, xl.dtype)
         w = w.at[0].set(0.5).at[-1].set(0.5)
         return h * w
+
+    def pointwise_constraint(self, constraint, values, interval):
+        """Collocation at the interior nodes, weighted by the trapezoid weight `h`:
+        `h G(y_i, x_i) = 0`."""
+        nodes = self.nodes(interval)
+        weights = self.node_weights(interval)
+        g = jax.vmap(constraint)(values[1:-1], nodes[1:-1])
+        return weights[1:-1, None] * g
 
     def interpolate(self, interval, values, x, derivative=0, interior=False):
         nodes = self.nodes(interval)

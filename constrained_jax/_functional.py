@@ -333,18 +333,14 @@ class _Problem(eqx.Module):
             fn, self.full_values(x_flat), self.functional.interval
         )
 
-    def holonomic_values(self, x_flat, args):
-        """`G(y_i, x_i)` at the interior nodes, shape `(N - 2, m)`."""
+    def holonomic_rows(self, x_flat, args):
+        """The discrete holonomic constraints, shape `(N - 2, m)`."""
         shape = self.shape
-        n = self.functional.num_components
-        nodes = self.discretization.nodes(self.functional.interval)[1:-1]
-        inner = x_flat.reshape(-1, n)
-        g = jax.vmap(
-            lambda y, x: jnp.atleast_1d(
-                self.functional.holonomic(y.reshape(shape), x, args)
-            )
-        )(inner, nodes)
-        return g
+        holonomic = self.functional.holonomic
+        constraint = lambda y, x: jnp.atleast_1d(holonomic(y.reshape(shape), x, args))
+        return self.discretization.pointwise_constraint(
+            constraint, self.full_values(x_flat), self.functional.interval
+        )
 
 
 def _objective(x_flat, args):
@@ -365,13 +361,11 @@ def _integral_constraints(x_flat, args):
 
 
 def _constraints(x_flat, args):
-    """`(w_i G(y_i, x_i) for interior i (node-major), int N_j - C_j)`."""
+    """`(discrete G rows for the interior nodes (node-major), int N_j - C_j)`."""
     problem, user_args = args
     parts = []
     if problem.functional.holonomic is not None:
-        weights = problem.discretization.node_weights(problem.functional.interval)
-        g = problem.holonomic_values(x_flat, user_args)
-        parts.append((weights[1:-1, None] * g).reshape(-1))
+        parts.append(problem.holonomic_rows(x_flat, user_args).reshape(-1))
     if problem.functional.integral_constraints:
         parts.append(_integral_constraints(x_flat, args))
     return jnp.concatenate(parts)
@@ -391,10 +385,11 @@ def solve_functional(
 
     The discretization turns `y` into its values at `N` nodes and every integral into
     a quadrature, giving the finite problem: extremize `F_h(Y)` over the interior
-    values `Y` subject to `int_h N_j = C_j` and `w_i G(y_i, x_i) = 0` at the interior
-    nodes. Its KKT system,
+    values `Y` subject to `int_h N_j = C_j` and one discrete form `G_i = 0` of the
+    holonomic constraints per interior node (see the discretization's
+    `pointwise_constraint`). Its KKT system,
 
-        grad F_h + sum_j lambda_j grad (int_h N_j) + sum_i mu_i w_i grad G_i = 0,
+        grad F_h + sum_j lambda_j grad (int_h N_j) + sum_i mu_i grad G_i = 0,
 
     is solved by the KKT machinery of [`constrained_jax.extremize`][] (Newton on the
     KKT residual with an affine-covariant line search). The discrete multipliers

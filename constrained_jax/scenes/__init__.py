@@ -6,8 +6,10 @@ writes it (the function or Lagrangian, the constraints, the closed-form answer),
 from . import (
     catenary as catenary,
     cylinder_volume as cylinder_volume,
+    dido as dido,
     pendulum as pendulum,
     rolling_disk as rolling_disk,
     rotating_hoop as rotating_hoop,
+    sphere_geodesic as sphere_geodesic,
     two_cylinders as two_cylinders,
 )

@@ -1,0 +1,239 @@
+"""The indirect method: shooting on the Euler-Lagrange equations.
+
+With integral constraints only, the extremal solves the Euler-Lagrange equations of
+`L* = L + sum_j lambda_j N_j`,
+
+    d2L*/dy'2 y'' = dL*/dy - d2L*/dy'dy y' - d2L*/dy'dx,
+
+a second-order ODE once the constants `lambda_j` are known. Shooting treats the
+initial slope `y'(xL)` and the multipliers as unknowns, integrates from `xL` with
+diffrax (carrying `I_j(x) = int_{xL}^x N_j dx` along), and finds the root of
+
+    (y(xR) - yR,  I_j(xR) - C_j)
+
+by Newton's method (optimistix). An alternative to the direct method
+([`constrained_jax.solve_functional`][]) with which to compare it; it needs a good
+starting slope and multipliers and an ODE that stays regular (`d2L*/dy'2`
+invertible) along the way.
+"""
+
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import ArrayLike
+
+from ._custom_types import Args
+from ._discretization import Chebyshev
+from ._functional import (
+    Functional,
+    FunctionalMultipliers,
+    FunctionalSolution,
+)
+from ._misc import as_traced_args, check_max_steps
+from ._results import RESULTS
+
+
+def _second_derivative(lagrangian_star: Callable, y, yp, x, args):
+    """`y''` from the Euler-Lagrange equations of `L*` (all shapes `(n,)`)."""
+    dl_dyp = lambda y_, yp_, x_: jax.grad(lagrangian_star, argnums=1)(y_, yp_, x_, args)
+    hess = jax.jacfwd(dl_dyp, argnums=1)(y, yp, x)
+    _, mixed = jax.jvp(
+        lambda y_, x_: dl_dyp(y_, yp, x_), (y, x), (yp, jnp.ones_like(x))
+    )
+    dl_dy = jax.grad(lagrangian_star, argnums=0)(y, yp, x, args)
+    return jnp.linalg.solve(hess, dl_dy - mixed)
+
+
+def solve_shooting(
+    functional: Functional,
+    args: Args = None,
+    *,
+    slope0: ArrayLike,
+    multipliers0: ArrayLike | None = None,
+    num_nodes: int = 32,
+    ode_solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    rtol: float = 1e-11,
+    atol: float = 1e-11,
+    root_tol: float = 1e-10,
+    max_steps: int = 64,
+    throw: bool = True,
+) -> FunctionalSolution:
+    """Solve the Euler-Lagrange equations of a functional by shooting.
+
+    **Arguments:**
+
+    - `functional`: a [`constrained_jax.Functional`][] with integral constraints
+        only (holonomic constraints make the Euler-Lagrange equations a DAE: use
+        [`constrained_jax.solve_functional`][]).
+    - `args`: parameters passed last to `L`, `N_j` and callable `C_j`.
+    - `slope0`: the starting guess for `y'(xL)` (shaped like the boundary values).
+    - `multipliers0`: the starting guess for the integral multipliers, shape `(k,)`.
+    - `num_nodes`: the solution is saved at this many Chebyshev-Gauss-Lobatto points
+        and interpolated spectrally between them.
+    - `ode_solver`, `rtol`, `atol`: the diffrax solver and its step-size tolerances.
+    - `root_tol`: tolerance of the Newton iteration (optimistix) on the shooting
+        unknowns.
+    - `max_steps`: the most Newton steps.
+    - `throw`: raise on failure if `True`; otherwise report it in `result`.
+
+    **Returns:**
+
+    A [`constrained_jax.FunctionalSolution`][] (its `discretization` is the
+    `Chebyshev(num_nodes)` interpolant of the saved values; `stats` holds the Newton
+    steps of the root find).
+
+    !!! note
+
+        Derivatives: forward mode only (the ODE solves use `diffrax.ForwardMode`,
+        which the Newton iteration needs for its Jacobian).
+    """
+    args = as_traced_args(args)
+    return _solve_shooting(
+        functional,
+        args,
+        jnp.asarray(slope0),
+        multipliers0,
+        num_nodes,
+        ode_solver,
+        rtol,
+        atol,
+        root_tol,
+        max_steps,
+        throw,
+    )
+
+
+@eqx.filter_jit
+def _solve_shooting(
+    functional,
+    args,
+    slope0,
+    multipliers0,
+    num_nodes,
+    ode_solver,
+    rtol,
+    atol,
+    root_tol,
+    max_steps,
+    throw,
+):
+    if not isinstance(functional, Functional):
+        raise ValueError("`functional` must be a `cjax.Functional`.")
+    if functional.holonomic is not None:
+        raise ValueError(
+            "Shooting handles integral constraints only: with holonomic constraints "
+            "the Euler-Lagrange equations are differential-algebraic. Use "
+            "`cjax.solve_functional` (the direct method)."
+        )
+    check_max_steps(max_steps)
+    discretization = Chebyshev(num_nodes)
+    dtype = functional.boundary[0].dtype
+    shape = functional.boundary[0].shape
+    n = functional.num_components
+    k = len(functional.integral_constraints)
+    if slope0.shape != shape:
+        raise ValueError(
+            f"`slope0` must be shaped like the boundary values, {shape}; got "
+            f"{slope0.shape}."
+        )
+    if multipliers0 is None:
+        multipliers0 = jnp.zeros((k,), dtype)
+    multipliers0 = jnp.asarray(multipliers0, dtype)
+    if multipliers0.shape != (k,):
+        raise ValueError(
+            f"`multipliers0` must have shape (k,) = ({k},), one per integral "
+            f"constraint; got {multipliers0.shape}."
+        )
+    xl, xr = functional.interval
+    yl, yr = functional.boundary
+    nodes = discretization.nodes(functional.interval)
+
+    def flat(fn):
+        return lambda y, yp, x, a: fn(y.reshape(shape), yp.reshape(shape), x, a)
+
+    def vector_field(x, state, params):
+        y, yp, _, _ = state
+        lam, a = params
+        lstar = flat(functional.extended_lagrangian(lam))
+        ypp = _second_derivative(lstar, y, yp, x, a)
+        integrals = (
+            jnp.stack(
+                [
+                    flat(c.integrand)(y, yp, x, a)
+                    for c in functional.integral_constraints
+                ]
+            )
+            if k
+            else jnp.zeros((0,), dtype)
+        )
+        value = flat(functional.lagrangian)(y, yp, x, a)
+        return yp, ypp, integrals, value
+
+    term = diffrax.ODETerm(vector_field)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+
+    def integrate(unknowns, a, saveat):
+        slope, lam = unknowns
+        state0 = (
+            yl.reshape(n),
+            slope.reshape(n),
+            jnp.zeros((k,), dtype),
+            jnp.zeros((), dtype),
+        )
+        return diffrax.diffeqsolve(
+            term,
+            ode_solver,
+            xl,
+            xr,
+            None,
+            state0,
+            (lam, a),
+            saveat=saveat,
+            stepsize_controller=controller,
+            adjoint=diffrax.ForwardMode(),
+            max_steps=100_000,
+            throw=False,
+        )
+
+    def residual(unknowns, a):
+        sol = integrate(unknowns, a, diffrax.SaveAt(t1=True))
+        y, _, integrals, _ = jax.tree.map(lambda v: v[-1], sol.ys)
+        targets = (
+            jnp.stack([c.target(a, dtype) for c in functional.integral_constraints])
+            if k
+            else jnp.zeros((0,), dtype)
+        )
+        return y - yr.reshape(n), integrals - targets
+
+    root = optx.root_find(
+        residual,
+        optx.Newton(rtol=root_tol, atol=root_tol),
+        (slope0.reshape(n).astype(dtype), multipliers0),
+        args,
+        max_steps=max_steps,
+        throw=False,
+    )
+    final = integrate(root.value, args, diffrax.SaveAt(ts=nodes))
+    y, _, _, running = final.ys
+    result = RESULTS.promote(root.result)
+    result = RESULTS.where(
+        result == RESULTS.successful, RESULTS.promote(final.result), result
+    )
+    result = RESULTS.where(jnp.all(jnp.isfinite(y)), result, RESULTS.nonfinite)
+    sol = FunctionalSolution(
+        x=nodes,
+        y=y.reshape((num_nodes,) + shape),
+        multipliers=FunctionalMultipliers(integral=root.value[1], holonomic=None),
+        value=running[-1],
+        result=result,
+        stats={"num_steps": root.stats["num_steps"], "max_steps": max_steps},
+        interval=functional.interval,
+        discretization=discretization,
+    )
+    if throw:
+        sol = result.error_if(sol, result != RESULTS.successful)
+    return sol
