@@ -1,0 +1,155 @@
+"""Bad input to the functional solvers: trace-time ValueErrors and RESULTS statuses."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+from constrained_jax.scenes import catenary as cat
+
+
+def _rope(length_fn=cat.rope_length):
+    return cjax.Functional(
+        cat.potential_energy,
+        (0.0, 1.0),
+        (0.0, 0.0),
+        (cjax.IntegralConstraint(cat.arc_length, length_fn),),
+    )
+
+
+_GUESS = lambda x: -0.3 * 4 * x * (1 - x)
+_SMALL = cjax.PiecewiseLinear(11)
+
+
+def test_length_not_exceeding_chord():
+    with pytest.raises(ValueError, match="must exceed the chord"):
+        cat.solve(0.0, 0.0, 1.0, 0.0, length=1.0)
+    with pytest.raises(ValueError, match="must exceed the chord"):
+        cat.closed_form(0.0, 0.0, 3.0, 4.0, 4.9)
+    # Through the general solver no rope exists: a failure status, never a silent
+    # answer, and throw=True raises.
+    sol = cjax.solve_functional(
+        _rope(),
+        {"rho_g": 1.0, "length": 0.9},
+        discretization=_SMALL,
+        y0=_GUESS,
+        throw=False,
+    )
+    assert sol.result != cjax.RESULTS.successful
+    with pytest.raises(Exception, match="KKT|line search|NaN|non-finite|steps"):
+        cjax.solve_functional(
+            _rope(), {"rho_g": 1.0, "length": 0.9}, discretization=_SMALL, y0=_GUESS
+        )
+
+
+def test_non_convergence_status():
+    sol = cjax.solve_functional(
+        _rope(),
+        {"rho_g": 1.0, "length": 1.5},
+        discretization=_SMALL,
+        y0=_GUESS,
+        max_steps=1,
+        throw=False,
+    )
+    assert sol.result == cjax.RESULTS.nonlinear_max_steps_reached
+
+
+def test_nonfinite_args_status():
+    sol = cjax.solve_functional(
+        _rope(),
+        {"rho_g": jnp.nan, "length": 1.5},
+        discretization=_SMALL,
+        y0=_GUESS,
+        throw=False,
+    )
+    assert sol.result == cjax.RESULTS.invalid_input
+
+
+def test_non_scalar_lagrangian():
+    fun = cjax.Functional(
+        lambda y, yp, x, a: jnp.stack([y, yp]), (0.0, 1.0), (0.0, 1.0)
+    )
+    with pytest.raises(ValueError, match="must return a scalar"):
+        cjax.solve_functional(fun, discretization=_SMALL)
+
+
+def test_non_scalar_integrand():
+    fun = cjax.Functional(
+        cat.potential_energy,
+        (0.0, 1.0),
+        (0.0, 0.0),
+        (cjax.IntegralConstraint(lambda y, yp, x, a: jnp.stack([y, y]), 1.0),),
+    )
+    with pytest.raises(ValueError, match="must return a scalar"):
+        cjax.solve_functional(fun, {"rho_g": 1.0}, discretization=_SMALL)
+
+
+@pytest.mark.parametrize(
+    "boundary",
+    [(0.0, jnp.zeros(2)), (jnp.zeros((2, 2)), jnp.zeros((2, 2))), (jnp.zeros(0),) * 2],
+)
+def test_boundary_shapes(boundary):
+    with pytest.raises(ValueError, match="boundary"):
+        cjax.Functional(cat.potential_energy, (0.0, 1.0), boundary)
+
+
+def test_interval_order():
+    with pytest.raises(ValueError, match="xL < xR"):
+        cjax.Functional(cat.potential_energy, (1.0, 0.0), (0.0, 0.0))
+
+
+@pytest.mark.parametrize("cls", [cjax.Chebyshev, cjax.PiecewiseLinear])
+@pytest.mark.parametrize("num_nodes", [2, 0, 3.5])
+def test_too_few_nodes(cls, num_nodes):
+    with pytest.raises(ValueError, match="num_nodes"):
+        cls(num_nodes)
+
+
+def test_strategies_are_objects():
+    with pytest.raises(ValueError, match="discretization"):
+        cjax.solve_functional(
+            _rope(), {"rho_g": 1.0, "length": 1.5}, discretization="x"
+        )
+    with pytest.raises(ValueError, match="solver"):
+        cjax.solve_functional(
+            _rope(), {"rho_g": 1.0, "length": 1.5}, discretization=_SMALL, solver="x"
+        )
+
+
+def test_y0_shape():
+    with pytest.raises(ValueError, match="y0"):
+        cjax.solve_functional(
+            _rope(), {"rho_g": 1.0, "length": 1.5}, discretization=_SMALL, y0=np.ones(7)
+        )
+
+
+def test_too_many_holonomic_constraints():
+    fun = cjax.Functional(
+        lambda y, yp, x, a: jnp.sum(yp**2),
+        (0.0, 1.0),
+        (jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])),
+        holonomic=lambda y, x, a: jnp.stack([y[0] - 1.0, y[1]]),
+    )
+    with pytest.raises(ValueError, match="m < n"):
+        cjax.solve_functional(fun, discretization=_SMALL)
+
+
+def test_shooting_rejects_holonomic():
+    fun = cjax.Functional(
+        lambda y, yp, x, a: jnp.sum(yp**2),
+        (0.0, 1.0),
+        (jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])),
+        holonomic=lambda y, x, a: jnp.sum(y**2) - 1.0,
+    )
+    with pytest.raises(ValueError, match="holonomic"):
+        cjax.solve_shooting(fun, slope0=jnp.zeros(2))
+
+
+def test_jit_of_errors_is_trace_time():
+    """Structure errors surface at trace time, also under jit."""
+    fun = cjax.Functional(
+        lambda y, yp, x, a: jnp.stack([y, yp]), (0.0, 1.0), (0.0, 1.0)
+    )
+    with pytest.raises(ValueError, match="must return a scalar"):
+        jax.jit(lambda: cjax.solve_functional(fun, discretization=_SMALL))()
