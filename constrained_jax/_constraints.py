@@ -191,9 +191,12 @@ class Unilateral(AbstractConstraint):
     def __init__(self, constraints, sign: float = 1.0, gap: Callable | None = None):
         if isinstance(constraints, AbstractConstraint):
             constraints = (constraints,)
+        if not isinstance(constraints, (tuple, list)) or not constraints:
+            raise ValueError(
+                "`Unilateral` groups `cjax.Holonomic` and `cjax.Pfaffian` constraints "
+                f"(one, or a sequence of them); got {constraints!r}."
+            )
         constraints = tuple(constraints)
-        if not constraints:
-            raise ValueError("`Unilateral` needs at least one constraint.")
         for c in constraints:
             if not isinstance(c, (Holonomic, Pfaffian)):
                 raise ValueError(

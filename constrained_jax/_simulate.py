@@ -476,6 +476,14 @@ def _simulate(
     result = RESULTS.where(
         singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
     )
+    # Fixed steps are not checked by diffrax: a blow-up to inf/NaN must not pass as
+    # success.
+    end_finite = all_finite((end[1], end[2]))
+    result = RESULTS.where(
+        (result == RESULTS.successful) & jnp.invert(end_finite),
+        RESULTS.nonfinite,
+        result,
+    )
     result = RESULTS.where(consistent, result, RESULTS.inconsistent_initial_state)
     result = RESULTS.where(start_ok, result, RESULTS.invalid_input)
     violation = None

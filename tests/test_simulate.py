@@ -325,3 +325,24 @@ def test_float32_simulation():
     # The tension at the bottom, m g (3 - 2 cos theta0), is the multiplier's magnitude.
     tension = args["m"] * args["g"] * (3 - 2 * jnp.cos(theta0))
     np.testing.assert_allclose(-traj.multipliers[-1, 0], tension, rtol=1e-4)
+
+
+def test_fixed_step_blow_up_is_not_success():
+    """Explicit Euler with far too large fixed steps on the pendulum blows up to
+    inf/NaN; diffrax does not check fixed steps, `simulate` does."""
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(1.0), jnp.asarray(0.0), args)
+    traj = cjax.simulate(
+        pendulum.system(),
+        (0.0, 2000.0),
+        q0,
+        qd0,
+        args,
+        solver=diffrax.Euler(),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        dt0=0.5,
+        saveat=cjax.SaveAt(t1=True, multipliers=False, energy=False, violation=False),
+        throw=False,
+    )
+    assert not np.all(np.isfinite(traj.q))
+    assert traj.result == cjax.RESULTS.nonfinite

@@ -29,6 +29,7 @@ With `alpha = 0` (`I = 0`) the mass matrix is singular, but the KKT matrix is no
 no-slip constraint fixes `theta2`.
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -131,3 +132,46 @@ def no_slip_multiplier(theta1, args):
 def detachment_angle(theta0, args):
     """`theta* = arccos(2 cos theta0 / (3 + alpha))`."""
     return jnp.arccos(2 * jnp.cos(theta0) / (3 + alpha(args)))
+
+
+def _carlson_rf(x, y, z, iterations: int = 40):
+    """Carlson's symmetric elliptic integral `R_F(x, y, z)` by duplication."""
+
+    def body(_, xyz):
+        x, y, z = xyz
+        sx, sy, sz = jnp.sqrt(x), jnp.sqrt(y), jnp.sqrt(z)
+        lam = sx * sy + sy * sz + sz * sx
+        return (x + lam) / 4, (y + lam) / 4, (z + lam) / 4
+
+    x, y, z = jax.lax.fori_loop(0, iterations, body, (x, y, z))
+    return 1 / jnp.sqrt((x + y + z) / 3)
+
+
+def time_to_angle(theta1, theta0, args):
+    """The time to roll from rest at `theta0` to `theta1` (attached, `theta1 >=
+    theta0 > 0`): the quadrature `t = int dtheta / theta1dot` in closed form.
+
+    The attached motion is an inverted pendulum, `theta1ddot = k sin theta1`,
+    `k = g/((1 + alpha)(R + a))`; with `m = cos^2(theta0/2)` and
+    `sin u = cos(theta1/2) / cos(theta0/2)`,
+
+        t = (K(m) - F(u | m)) / sqrt(k),
+
+    with `K` and `F` the complete and incomplete elliptic integrals of the first kind
+    (Carlson's `R_F`, written with the complementary parameter `sin^2(theta0/2)` so
+    that small `theta0`, where `m -> 1`, keeps its accuracy). Infinite for
+    `theta0 = 0` (balanced on top).
+    """
+    k = angular_acceleration(jnp.pi / 2, args)
+    kc2 = jnp.sin(theta0 / 2) ** 2  # 1 - m
+    sin_u = jnp.cos(theta1 / 2) / jnp.cos(theta0 / 2)
+    cos2_u = (1 - sin_u) * (1 + sin_u)
+    one, zero = jnp.ones_like(kc2), jnp.zeros_like(kc2)
+    big_k = _carlson_rf(zero, kc2, one)
+    f = sin_u * _carlson_rf(cos2_u, cos2_u + kc2 * sin_u**2, one)
+    return (big_k - f) / jnp.sqrt(k)
+
+
+def detachment_time(theta0, args):
+    """The time from rest at `theta0` to detachment, `time_to_angle(theta*, theta0)`."""
+    return time_to_angle(detachment_angle(theta0, args), theta0, args)
