@@ -26,6 +26,10 @@ from ._stabilization import (
     Unstabilized,
 )
 from ._system import LagrangianSystem
+from ._variational_integrator import (
+    AbstractVariationalIntegrator,
+    integrate_variational,
+)
 
 
 class SaveAt(eqx.Module):
@@ -144,7 +148,11 @@ def simulate(
         to within `consistency_tol` (relative to `1 + |q0|`, `1 + |qd0|`); see
         [`constrained_jax.consistent_initial_state`][].
     - `args`: parameters, passed last to every user function (traced).
-    - `solver`: any diffrax ODE solver.
+    - `solver`: any diffrax ODE solver, or a
+        [`constrained_jax.VariationalIntegrator`][] (symplectic, fixed step `dt0`,
+        constraints kept at every step; `stepsize_controller` is then ignored, the
+        steps are chosen to land on the save times, and the run ends at the last
+        save time).
     - `stabilization`: `Unstabilized()`, `Baumgarte(alpha, beta)` or `Projection()`.
     - `stepsize_controller`, `dt0`, `max_steps`, `adjoint`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
@@ -165,6 +173,27 @@ def simulate(
         )
     if not isinstance(saveat, SaveAt):
         raise ValueError("`saveat` must be a `cjax.SaveAt(...)`.")
+    if isinstance(solver, AbstractVariationalIntegrator):
+        if dt0 is None:
+            raise ValueError(
+                "A variational integrator takes fixed steps: pass the step size, e.g. "
+                "`simulate(..., solver=cjax.VariationalIntegrator(), dt0=0.01)`."
+            )
+        if not isinstance(stabilization, Unstabilized):
+            raise ValueError(
+                "A variational integrator enforces the constraints itself at every "
+                "step: use `stabilization=cjax.Unstabilized()` (the default)."
+            )
+        if _find_unilateral(system) is not None:
+            raise ValueError(
+                "Release events (`cjax.Unilateral`) are not implemented for the "
+                "variational integrator; use a diffrax solver."
+            )
+    elif not isinstance(solver, diffrax.AbstractSolver):
+        raise ValueError(
+            "`solver` must be a diffrax solver (e.g. `diffrax.Tsit5()`) or "
+            f"`cjax.VariationalIntegrator()`, got {type(solver).__name__}."
+        )
     check_max_steps(max_steps)
     args = as_traced_args(args)
     t0, t1 = t_span
@@ -329,7 +358,13 @@ def _simulate(
     )
     found = _find_unilateral(system)
     release = None
-    if found is None:
+    if isinstance(solver, AbstractVariationalIntegrator):
+        (q, qd), result, stats = integrate_variational(
+            solver, system, t0, t1, dt0, q0, qd0, args, ts, max_steps=max_steps
+        )
+        end = (ts[-1], q[-1], qd[-1])
+        systems_at = None
+    elif found is None:
         saved, end, result, stats = phase(system, t0, t1, (q0, qd0), ts, None)
         q, qd = saved
         result = RESULTS.promote(result)
