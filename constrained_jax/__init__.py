@@ -7,15 +7,15 @@ Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-p
 import importlib.metadata
 
 from . import scenes as scenes
+from ._banded import (
+    BorderedBlockTridiagonal as BorderedBlockTridiagonal,
+    EquilibratedDenseLU as EquilibratedDenseLU,
+)
 from ._constraints import (
     AbstractConstraint as AbstractConstraint,
     Holonomic as Holonomic,
     Pfaffian as Pfaffian,
     Unilateral as Unilateral,
-)
-from ._banded import (
-    BorderedBlockTridiagonal as BorderedBlockTridiagonal,
-    EquilibratedDenseLU as EquilibratedDenseLU,
 )
 from ._discretization import (
     AbstractDiscretization as AbstractDiscretization,
