@@ -450,7 +450,7 @@ def _simulate(
             recontact=recontact,
             recontact_time=jnp.where(recontact, t_end2, t1),
         )
-        systems_at = (attached, free, group, row)
+        systems_at = (attached, free, group, row, beyond)
 
     if isinstance(stabilization, Projection):
         # Saved states between steps are interpolated: project them as well.
@@ -463,8 +463,10 @@ def _simulate(
             attached, free = systems_at[0], systems_at[1]
             qa, qda = jax.vmap(lambda a, b, c: project(a, b, c, system))(q, qd, ts)
             qf, qdf = jax.vmap(lambda a, b, c: project(a, b, c, free))(q, qd, ts)
-            q = jnp.where(attached[:, None], qa, qf)
-            qd = jnp.where(attached[:, None], qda, qdf)
+            # (States after re-contact stay inf, not the NaN a projection makes.)
+            beyond = systems_at[4][:, None]
+            q = jnp.where(attached[:, None], qa, jnp.where(beyond, jnp.inf, qf))
+            qd = jnp.where(attached[:, None], qda, jnp.where(beyond, jnp.inf, qdf))
 
     def derived(q_, qd_, t_, sys_, keep_rows):
         out = {}
@@ -487,7 +489,7 @@ def _simulate(
     if systems_at is None:
         extra = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
     else:
-        attached, free, group, row = systems_at
+        attached, free, group, row, _ = systems_at
         k_group = group.num_constraints(n, args, q0.dtype)
         keep = jnp.asarray(
             [j for j in range(system_k) if not row <= j < row + k_group], int
