@@ -6,7 +6,7 @@ Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-p
 
 import importlib.metadata
 
-from . import scenes as scenes
+from . import plot as plot, scenes as scenes
 from ._banded import (
     BorderedBlockTridiagonal as BorderedBlockTridiagonal,
     EquilibratedDenseLU as EquilibratedDenseLU,
@@ -27,6 +27,7 @@ from ._extremize import (
     EXTREMUM as EXTREMUM,
     Extremum as Extremum,
 )
+from ._fit import fit as fit, FitResult as FitResult
 from ._functional import (
     euler_lagrange as euler_lagrange,
     first_integral as first_integral,
@@ -72,6 +73,7 @@ from ._stabilization import (
     Projection as Projection,
     Unstabilized as Unstabilized,
 )
+from ._sweep import sweep as sweep
 from ._system import LagrangianSystem as LagrangianSystem
 from ._variational_integrator import (
     AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,
