@@ -136,6 +136,7 @@ def simulate(
     max_steps: int = 16384,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
     consistency_tol: float = 1e-8,
+    progress_meter: diffrax.AbstractProgressMeter = diffrax.NoProgressMeter(),
     throw: bool = True,
 ) -> Trajectory:
     """Integrate the constrained equations of motion from `(q0, qd0)` at `t_span[0]`.
@@ -157,6 +158,10 @@ def simulate(
     - `stepsize_controller`, `dt0`, `max_steps`, `adjoint`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
     - `saveat`: a [`constrained_jax.SaveAt`][].
+    - `progress_meter`: diffrax's progress meter for a long single run, e.g.
+        `diffrax.TqdmProgressMeter()` (a bar per phase when a `Unilateral`
+        constraint releases; ignored by the variational integrator). For many runs
+        use [`constrained_jax.sweep`][], which has its own bar over chunks.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:** a [`constrained_jax.Trajectory`][].
@@ -173,6 +178,11 @@ def simulate(
         )
     if not isinstance(saveat, SaveAt):
         raise ValueError("`saveat` must be a `cjax.SaveAt(...)`.")
+    if not isinstance(progress_meter, diffrax.AbstractProgressMeter):
+        raise ValueError(
+            "`progress_meter` must be a diffrax progress meter, e.g. "
+            "`diffrax.TqdmProgressMeter()`."
+        )
     if isinstance(solver, AbstractVariationalIntegrator):
         if dt0 is None:
             raise ValueError(
@@ -217,6 +227,7 @@ def simulate(
         max_steps,
         adjoint,
         consistency_tol,
+        progress_meter,
         throw,
     )
 
@@ -273,6 +284,7 @@ def _run_phase(
     dt0,
     max_steps,
     adjoint,
+    progress_meter,
     event,
 ):
     """One diffrax solve; returns the states at `ts` (or `None`), the last state
@@ -297,6 +309,7 @@ def _run_phase(
         max_steps=max_steps,
         adjoint=adjoint,
         event=event,
+        progress_meter=progress_meter,
         throw=False,
     )
     (q_end, qd_end) = sol.ys[0]
@@ -321,6 +334,7 @@ def _simulate(
     max_steps,
     adjoint,
     consistency_tol,
+    progress_meter,
     throw,
 ):
     system.check(q0, qd0, t0, args)
@@ -354,6 +368,7 @@ def _simulate(
         dt0,
         max_steps,
         adjoint,
+        progress_meter,
         event,
     )
     found = _find_unilateral(system)

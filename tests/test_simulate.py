@@ -346,3 +346,24 @@ def test_fixed_step_blow_up_is_not_success():
     )
     assert not np.all(np.isfinite(traj.q))
     assert traj.result == cjax.RESULTS.nonfinite
+
+
+def test_progress_meter_reports_and_changes_nothing(capfd):
+    """diffrax's progress meter is passed through: it prints, and the answer is the
+    same as without it."""
+    system = pendulum.system()
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+    plain = cjax.simulate(system, (0.0, 1.0), q0, qd0, args)
+    metered = cjax.simulate(
+        system,
+        (0.0, 1.0),
+        q0,
+        qd0,
+        args,
+        progress_meter=diffrax.TextProgressMeter(minimum_increase=0.5),
+    )
+    assert "100.00%" in capfd.readouterr().out
+    assert tree_allclose(plain.q, metered.q, rtol=0.0, atol=0.0)
+    with pytest.raises(ValueError, match="progress meter"):
+        cjax.simulate(system, (0.0, 1.0), q0, qd0, args, progress_meter="tqdm")
