@@ -1,8 +1,572 @@
-"""sweep(): chunked jit(vmap(fn)), sharded over local devices, progress, resumable.
+"""`sweep()`: one function over many inputs, in chunks of `jit(vmap(fn))`, sharded over
+the local devices, with a progress bar and an optional resumable checkpoint.
 
-(Being written: see issue 6.)
+The chunk layout: the inputs (leading axis `N`) are cut into `ceil(N / chunk_size)`
+chunks of `chunk_size` rows; the last one is padded by repeating its last row, so every
+chunk has the same shape and one compiled program serves them all; the padding rows'
+outputs are dropped. Each chunk is moved to the devices, evaluated, and its outputs
+brought back to host memory before the next one is sent: device memory is bounded by
+one chunk, whatever `N`.
+
+The checkpoint folder holds `manifest.json` (what was swept: the fingerprint) and one
+file `chunk_XXXXXX.npz` per finished chunk, each written atomically (a temporary file
+in the same folder, `fsync`, `os.replace`) with the fingerprint's digest and a SHA-256
+checksum of its own arrays.
 """
 
+import hashlib
+import json
+import math
+import operator
+import os
+import pathlib
+import re
+import tempfile
+import warnings
+from collections.abc import Callable, Sequence
+from typing import Any
 
-def sweep(fn, inputs, *, batch_size=1024, devices=None, checkpoint=None, progress=True):
-    raise NotImplementedError("cjax.sweep is being written (issue 6)")
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+
+_FORMAT = "constrained_jax.sweep/1"
+_MANIFEST = "manifest.json"
+_ADDRESS = re.compile(r"0x[0-9a-fA-F]+")
+# The fingerprint's fields that the jaxpr of vmap(fn) depends on besides fn itself.
+_TRACED_WITH = ("inputs", "chunking", "devices", "format")
+
+
+def sweep(
+    fn: Callable[[Any], Any],
+    inputs: Any,
+    *,
+    batch_size: int = 1024,
+    devices: Sequence[jax.Device] | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    progress: bool = True,
+) -> Any:
+    """Evaluate `fn` on every input of a batch, in chunks, over all local devices.
+
+    Equivalent to `jax.vmap(fn)(inputs)`, but for any number of inputs: the batch is
+    cut into chunks of `batch_size` rows evaluated with one compiled
+    `jax.jit(jax.vmap(fn))`, each chunk sharded over the devices along its batch axis
+    (a 1-D `jax.sharding.Mesh`, `NamedSharding(mesh, PartitionSpec("batch"))`). Only
+    one chunk is on the devices at a time, so device memory is bounded by the chunk
+    size whatever the number of inputs.
+
+    **Arguments:**
+
+    - `fn`: maps ONE input (a pytree of arrays, one row of `inputs`) to outputs (a
+        pytree of arrays), written as for `jax.vmap`. It is traced once per call of
+        `sweep` and compiled once for all chunks.
+    - `inputs`: a pytree whose leaves are arrays (numpy or JAX) with a common leading
+        axis of length `N >= 1`: row `i` of every leaf together is input `i`. Keep
+        large inputs as numpy arrays: chunks are sliced on the host and only the
+        chunk is sent to the devices.
+    - `batch_size`: rows per chunk, rounded up to a multiple of the number of devices
+        (each device gets `chunk_size / n_devices` rows); if that exceeds `N` (rounded
+        up likewise), a single chunk holds everything. The last chunk is padded by
+        repeating the last input, so that it has the same shape (no recompilation);
+        the padding's outputs are discarded. Choose it so that one chunk fits in
+        device memory.
+    - `devices`: the devices to shard over; default `jax.local_devices()`. All must
+        belong to this process and share one platform.
+    - `checkpoint`: a folder (created if missing) to make the sweep resumable; see
+        below. `None` (default): nothing is written.
+    - `progress`: show a tqdm bar (chunks done, rate, time left). `False`, or the
+        environment variable `TQDM_DISABLE=1`, turns it off. A long single
+        simulation has diffrax's progress meter instead:
+        `cjax.simulate(..., progress_meter=diffrax.TqdmProgressMeter())`.
+
+    **Returns:** the outputs pytree with a leading axis `N` on every leaf, as host
+    **numpy** arrays (the same whether a chunk was computed now or read back from a
+    checkpoint); `jnp.asarray` moves them to a device if wanted.
+
+    **Checkpoints.** With `checkpoint=folder`, every finished chunk is written to
+    `folder/chunk_XXXXXX.npz` atomically (temporary file, `fsync`, `os.replace`: a
+    killed process leaves either the whole chunk or nothing). The folder's
+    `manifest.json` records the fingerprint of the sweep: a SHA-256 of the input
+    leaves' bytes, shapes, dtypes and tree structure; `N`, the chunk size and number
+    of chunks; the devices (count, platform, kind); and `fn`, as a SHA-256 of the
+    jaxpr of `vmap(fn)` on one chunk (its text, with memory addresses removed, and
+    the values of its closed-over constants). Calling `sweep` again with the same
+    folder resumes: finished chunks are read back (each checked against its
+    checksum) and never recomputed, and the result is bit-identical to an
+    uninterrupted run. A folder written for a different sweep (other inputs, batch
+    size, devices, or `fn`) raises a `ValueError` naming what differs: use a new
+    folder, or delete the old one to start again. A chunk file that is truncated or
+    corrupted is reported with a warning and recomputed, never used.
+
+    !!! note
+
+        What the `fn` fingerprint sees is the computation JAX traces: changing the
+        code, the shapes or a closed-over array changes it, so does upgrading JAX or
+        a library `fn` calls into (then the checkpoint is refused). It does not see
+        inside Python callbacks (`jax.pure_callback`, `jax.debug.callback`): changing
+        a callback's Python code needs a new folder. One process per folder at a
+        time.
+
+    **Several hosts.** `sweep` uses the devices of the calling process only. Under
+    `jax.distributed.initialize()`, give each process its own share of the inputs
+    and its own folder, and gather the results yourself, e.g.
+
+    ```python
+    jax.distributed.initialize()
+    k, p = jax.process_index(), jax.process_count()
+    mine = jax.tree.map(lambda x: np.array_split(x, p)[k], inputs)
+    out = cjax.sweep(fn, mine, checkpoint=f"sweep/process_{k}")
+    np.savez(f"sweep/result_{k}.npz", *jax.tree.leaves(out))
+    ```
+
+    Each process then shards its chunks over its local devices; there is no
+    communication between processes. Tested: one host with 1 device and with 4
+    (CPU devices forced by `XLA_FLAGS=--xla_force_host_platform_device_count=4`);
+    the multi-host pattern above is not tested here.
+
+    **Raises:** `ValueError` for leaves that are not arrays or have no leading axis,
+    leading axes of different lengths, `N = 0`, `batch_size < 1`, bad `devices`, or a
+    checkpoint folder from a different sweep.
+    """
+    leaves, paths, treedef, n = _check_inputs(inputs)
+    batch_size = _check_batch_size(batch_size)
+    devices = _check_devices(devices)
+    n_devices = len(devices)
+    chunk = min(_round_up(batch_size, n_devices), _round_up(n, n_devices))
+    n_chunks = math.ceil(n / chunk)
+
+    mesh = Mesh(np.asarray(devices, dtype=object), ("batch",))
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    dtypes = [jax.dtypes.canonicalize_dtype(leaf.dtype) for leaf in leaves]
+    specs = jax.tree.unflatten(
+        treedef,
+        [
+            jax.ShapeDtypeStruct((chunk,) + leaf.shape[1:], dtype, sharding=sharding)
+            for leaf, dtype in zip(leaves, dtypes, strict=True)
+        ],
+    )
+    # One trace (and below, at most one compilation) per sweep.
+    traced = jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding).trace(
+        specs
+    )
+    out_info, out_treedef = jax.tree.flatten(traced.out_info)
+    outputs = [np.empty((n,) + o.shape[1:], o.dtype) for o in out_info]
+
+    store = None
+    done = [False] * n_chunks
+    if checkpoint is not None:
+        key = {
+            "format": _FORMAT,
+            "inputs": _inputs_fingerprint(leaves, paths, treedef),
+            "length": n,
+            "chunking": {"chunk_size": chunk, "chunks": n_chunks},
+            "devices": _devices_fingerprint(devices),
+            "fn": _fn_fingerprint(traced.jaxpr),
+            "outputs": {
+                "structure": _strip_addresses(str(out_treedef)),
+                "shapes": [list(o.shape[1:]) for o in out_info],
+                "dtypes": [np.dtype(o.dtype).str for o in out_info],
+            },
+        }
+        info = {"batch_size": batch_size, "jax": jax.__version__}
+        store = _Checkpoint(pathlib.Path(checkpoint), key, info)
+        for index in range(n_chunks):
+            start, stop = _bounds(index, chunk, n)
+            loaded = store.load(index, start, stop, outputs)
+            if loaded is not None:
+                for out, part in zip(outputs, loaded, strict=True):
+                    out[start:stop] = part
+                done[index] = True
+
+    bar = _progress_bar(progress, n_chunks, sum(done))
+    try:
+        compiled = None
+        for index in range(n_chunks):
+            if done[index]:
+                continue
+            if compiled is None:
+                compiled = traced.lower().compile()
+            start, stop = _bounds(index, chunk, n)
+            host_in = [
+                _padded_rows(leaf, start, stop, chunk, dtype)
+                for leaf, dtype in zip(leaves, dtypes, strict=True)
+            ]
+            device_in = jax.device_put(jax.tree.unflatten(treedef, host_in), sharding)
+            device_out = compiled(device_in)
+            host_out = [
+                np.asarray(x)[: stop - start]
+                for x in jax.device_get(jax.tree.leaves(device_out))
+            ]
+            del device_in, device_out  # nothing of this chunk stays on the devices
+            for out, part in zip(outputs, host_out, strict=True):
+                out[start:stop] = part
+            if store is not None:
+                store.save(index, start, stop, host_out)
+            bar.update(1)
+    finally:
+        bar.close()
+    return jax.tree.unflatten(out_treedef, outputs)
+
+
+def _round_up(x: int, multiple: int) -> int:
+    return -(-x // multiple) * multiple
+
+
+def _bounds(index: int, chunk: int, n: int) -> tuple[int, int]:
+    return index * chunk, min((index + 1) * chunk, n)
+
+
+def _padded_rows(leaf, start, stop, chunk, dtype):
+    """Rows `start:stop` of `leaf` (on the host), padded to `chunk` rows by repeating
+    the last one."""
+    rows = np.asarray(leaf[start:stop], dtype=dtype)
+    missing = chunk - (stop - start)
+    if missing:
+        rows = np.concatenate([rows, np.repeat(rows[-1:], missing, axis=0)])
+    return rows
+
+
+def _check_inputs(inputs):
+    with_paths, treedef = jax.tree_util.tree_flatten_with_path(inputs)
+    if not with_paths:
+        raise ValueError(
+            "`sweep` got inputs without any array leaf: pass a pytree of arrays with "
+            "a common leading axis (one row per input)."
+        )
+    leaves = []
+    lengths = {}
+    for path, leaf in with_paths:
+        name = "inputs" + jax.tree_util.keystr(path)
+        if not isinstance(leaf, np.ndarray | jax.Array):
+            raise ValueError(
+                f"`sweep`: {name} is a {type(leaf).__name__}, not an array. Every leaf "
+                "of `inputs` must be an array (numpy or JAX) whose leading axis runs "
+                "over the inputs; wrap lists with `np.asarray` and pass constants to "
+                "`fn` by closure instead."
+            )
+        if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.extended):
+            raise ValueError(
+                f"`sweep`: {name} has the extended dtype {leaf.dtype} (typed PRNG "
+                "keys?); pass `jax.random.key_data(keys)` and rebuild them in `fn` "
+                "with `jax.random.wrap_key_data`."
+            )
+        if leaf.ndim == 0:
+            raise ValueError(
+                f"`sweep`: {name} is a scalar; every leaf of `inputs` needs a leading "
+                "axis running over the inputs (shape `(N, ...)`)."
+            )
+        lengths[name] = leaf.shape[0]
+        leaves.append(leaf if isinstance(leaf, np.ndarray) else np.asarray(leaf))
+    if len(set(lengths.values())) > 1:
+        listed = ", ".join(f"{k}: {v}" for k, v in lengths.items())
+        raise ValueError(
+            "`sweep`: the leaves of `inputs` must share their leading axis (one row "
+            f"per input), got lengths {listed}."
+        )
+    n = next(iter(lengths.values()))
+    if n == 0:
+        raise ValueError("`sweep` got no inputs: the leading axis has length 0.")
+    return leaves, list(lengths), treedef, n
+
+
+def _check_batch_size(batch_size) -> int:
+    try:
+        if isinstance(batch_size, bool):
+            raise TypeError
+        batch_size = operator.index(batch_size)
+    except TypeError:
+        raise ValueError(
+            f"`batch_size` must be an integer >= 1, got {batch_size!r}."
+        ) from None
+    if batch_size < 1:
+        raise ValueError(f"`batch_size` must be an integer >= 1, got {batch_size}.")
+    return batch_size
+
+
+def _check_devices(devices) -> list:
+    if devices is None:
+        return list(jax.local_devices())
+    devices = list(devices)
+    if not devices:
+        raise ValueError("`devices` is empty: pass None (all local devices) or a list.")
+    if not all(isinstance(d, jax.Device) for d in devices):
+        raise ValueError("`devices` must be a list of `jax.Device`s (or None).")
+    if len(set(devices)) != len(devices):
+        raise ValueError(f"`devices` lists a device twice: {devices}.")
+    if len({d.platform for d in devices}) > 1:
+        raise ValueError(f"`devices` must share one platform, got {devices}.")
+    me = jax.process_index()
+    if any(d.process_index != me for d in devices):
+        raise ValueError(
+            "`sweep` runs on the devices of this process only (`jax.local_devices()`). "
+            "On several hosts, call it in each process on its own share of the inputs "
+            "(see the docstring of `cjax.sweep`)."
+        )
+    return devices
+
+
+def _progress_bar(progress: bool, total: int, initial: int):
+    from tqdm import tqdm
+
+    kwargs = {}
+    # tqdm reads TQDM_DISABLE when it is imported; read it again at call time.
+    env = os.environ.get("TQDM_DISABLE", "").strip().lower()
+    if not progress or env not in ("", "0", "false", "no"):
+        kwargs["disable"] = True
+    return tqdm(total=total, initial=initial, unit="chunk", desc="cjax.sweep", **kwargs)
+
+
+# --------------------------------------------------------------------------------------
+# Fingerprints and checkpoint files.
+
+
+def _strip_addresses(text: str) -> str:
+    return _ADDRESS.sub("0x", text)
+
+
+def _update_with_arrays(h, arrays) -> None:
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(memoryview(a.reshape(-1).view(np.uint8)))
+
+
+def _inputs_fingerprint(leaves, paths, treedef) -> dict:
+    def digest(leaf):
+        h = hashlib.sha256()
+        _update_with_arrays(h, [leaf])
+        return h.hexdigest()
+
+    return {
+        "structure": _strip_addresses(str(treedef)),
+        "leaves": paths,
+        "shapes": [list(leaf.shape) for leaf in leaves],
+        "dtypes": [leaf.dtype.str for leaf in leaves],
+        "sha256": [digest(leaf) for leaf in leaves],
+    }
+
+
+def _devices_fingerprint(devices) -> str:
+    d = devices[0]
+    return f"{len(devices)} x {d.platform} ({d.device_kind})"
+
+
+def _fn_fingerprint(closed_jaxpr) -> str:
+    """SHA-256 of the jaxpr of `vmap(fn)` on one chunk: its text (deterministic
+    across processes once memory addresses are removed) and its constants' values."""
+    h = hashlib.sha256()
+    h.update(_strip_addresses(str(closed_jaxpr.jaxpr)).encode())
+    consts = []
+    for c in closed_jaxpr.consts:
+        if isinstance(c, jax.Array) and jax.dtypes.issubdtype(
+            c.dtype, jax.dtypes.extended
+        ):
+            c = jax.random.key_data(c)
+        consts.append(np.asarray(c))
+    _update_with_arrays(h, consts)
+    return h.hexdigest()
+
+
+def _checksum(arrays) -> str:
+    h = hashlib.sha256()
+    _update_with_arrays(h, arrays)
+    return h.hexdigest()
+
+
+def _write_atomically(path: pathlib.Path, write: Callable[[Any], None]) -> None:
+    """`write(file)` into a temporary file next to `path`, `fsync`, then rename it
+    over `path` (atomic on POSIX and Windows): readers see the old file or the whole
+    new one, never a partial one."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    try:  # make the rename itself durable (POSIX); not possible everywhere
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dir_fd)
+    except OSError:
+        pass
+    finally:
+        os.close(dir_fd)
+
+
+def _short(value) -> str:
+    text = json.dumps(value) if not isinstance(value, str) else value
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+class _Checkpoint:
+    """A checkpoint folder: `manifest.json` (the sweep's fingerprint `key`, and `info`
+    not compared) and one `chunk_XXXXXX.npz` per finished chunk."""
+
+    def __init__(self, folder: pathlib.Path, key: dict, info: dict):
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(
+                f"`checkpoint={str(folder)!r}` exists and is not a folder."
+            )
+        folder.mkdir(parents=True, exist_ok=True)
+        self.folder = folder
+        self.key = key
+        self.digest = hashlib.sha256(
+            json.dumps(key, sort_keys=True).encode()
+        ).hexdigest()
+        for stale in folder.glob(".*.tmp"):  # left by a process killed mid-write
+            stale.unlink(missing_ok=True)
+        manifest = folder / _MANIFEST
+        if manifest.exists():
+            self._compare(manifest, info)
+        else:
+            text = json.dumps({"key": key, "info": info}, indent=1, sort_keys=True)
+            _write_atomically(manifest, lambda f: f.write(text.encode()))
+
+    def _refuse(self, why: str):
+        raise ValueError(
+            f"The checkpoint folder {str(self.folder)!r} was written for a different "
+            f"sweep: {why}. Its results cannot be reused for this one. Pass a new "
+            "folder as `checkpoint=`, or delete this one to start again."
+        )
+
+    def _compare(self, manifest: pathlib.Path, info: dict):
+        try:
+            old = json.loads(manifest.read_text())
+            old_key, old_info = old["key"], old.get("info", {})
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            self._refuse(f"its {_MANIFEST} is unreadable ({e})")
+        if old_key == self.key:
+            return
+        differences = []
+        names = {
+            "format": "the checkpoint format",
+            "length": "the number of inputs N",
+            "devices": "the devices",
+            "fn": "`fn` (the jaxpr of vmap(fn))",
+        }
+        for field in sorted(set(old_key) | set(self.key)):
+            before, now = old_key.get(field), self.key.get(field)
+            if before == now:
+                continue
+            if field == "inputs" and isinstance(before, dict):
+                parts = [
+                    f"{k} (checkpoint: {_short(before[k])}; now: {_short(now[k])})"
+                    for k in ("structure", "shapes", "dtypes")
+                    if before.get(k) != now.get(k)
+                ]
+                if not parts:
+                    changed = [
+                        path
+                        for path, a, b in zip(
+                            now["leaves"], before["sha256"], now["sha256"], strict=True
+                        )
+                        if a != b
+                    ]
+                    parts = ["the values of " + ", ".join(changed) + " differ"]
+                differences.append("the inputs: " + "; ".join(parts))
+            elif field == "chunking":
+                differences.append(
+                    f"the chunking (checkpoint: {_short(before)} with batch_size="
+                    f"{old_info.get('batch_size')}; now: {_short(now)} with batch_size="
+                    f"{info['batch_size']}): use the same batch_size and devices"
+                )
+            elif field == "fn":
+                if any(old_key.get(f) != self.key.get(f) for f in _TRACED_WITH):
+                    continue  # the jaxpr changes with those; fn may be the same
+                note = ""
+                if old_info.get("jax") != info["jax"]:
+                    note = (
+                        f"; the checkpoint was written with JAX {old_info.get('jax')},"
+                        f" this is JAX {info['jax']}"
+                    )
+                differences.append(
+                    "`fn` (the jaxpr of vmap(fn) on one chunk, or the values it "
+                    f"closes over, changed{note})"
+                )
+            elif field == "outputs":
+                if old_key.get("fn") == self.key.get("fn"):
+                    differences.append(
+                        f"the outputs ({_short(before)}; now {_short(now)})"
+                    )
+            else:
+                differences.append(
+                    f"{names.get(field, field)} (checkpoint: {_short(before)}; now: "
+                    f"{_short(now)})"
+                )
+        self._refuse("; ".join(differences))
+
+    def path(self, index: int) -> pathlib.Path:
+        return self.folder / f"chunk_{index:06d}.npz"
+
+    def save(self, index: int, start: int, stop: int, arrays) -> None:
+        meta = {
+            "fingerprint": self.digest,
+            "index": index,
+            "start": start,
+            "stop": stop,
+            "shapes": [list(a.shape) for a in arrays],
+            "dtypes": [a.dtype.str for a in arrays],
+            "sha256": _checksum(arrays),
+        }
+        named = {f"leaf_{i}": a for i, a in enumerate(arrays)}
+        named["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+        _write_atomically(self.path(index), lambda f: np.savez(f, **named))
+
+    def load(self, index: int, start: int, stop: int, outputs):
+        """The chunk's output leaves, or `None` (with a warning if a file was there
+        but unusable) if it must be computed."""
+        path = self.path(index)
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(data["meta"].tobytes())
+                if not isinstance(meta, dict):
+                    raise ValueError("its metadata is not a JSON object")
+                arrays = [data[f"leaf_{i}"] for i in range(len(outputs))]
+                extra = len(data.files) - len(outputs) - 1
+        except Exception as e:  # truncated or garbled: zipfile, OSError, EOFError, ...
+            return self._discard(path, f"unreadable: {type(e).__name__}: {e}")
+        if meta.get("fingerprint") != self.digest:
+            self._refuse(
+                f"{path.name} carries the fingerprint of another sweep (chunk files "
+                "from different folders mixed?)"
+            )
+        if extra:
+            return self._discard(path, "it holds the wrong number of arrays")
+        expected = [(stop - start,) + o.shape[1:] for o in outputs]
+        fixed = []
+        for a, o in zip(arrays, outputs, strict=True):
+            if a.dtype != o.dtype and a.dtype.kind == "V" and a.itemsize == o.itemsize:
+                a = a.view(o.dtype)  # dtypes numpy cannot name (bfloat16, ...)
+            fixed.append(a)
+        if (meta.get("index"), meta.get("start"), meta.get("stop")) != (
+            index,
+            start,
+            stop,
+        ):
+            return self._discard(path, "its chunk bounds do not match its name")
+        if [a.shape for a in fixed] != expected or [a.dtype for a in fixed] != [
+            o.dtype for o in outputs
+        ]:
+            return self._discard(path, "its arrays have the wrong shapes or dtypes")
+        if _checksum(fixed) != meta.get("sha256"):
+            return self._discard(path, "its checksum does not match its contents")
+        return fixed
+
+    @staticmethod
+    def _discard(path: pathlib.Path, why) -> None:
+        warnings.warn(
+            f"cjax.sweep: checkpoint file {str(path)!r} is corrupted or truncated "
+            f"({why}); its chunk will be recomputed.",
+            stacklevel=4,
+        )
+        return None
