@@ -75,8 +75,9 @@ def sweep(
         belong to this process and share one platform.
     - `checkpoint`: a folder (created if missing) to make the sweep resumable; see
         below. `None` (default): nothing is written.
-    - `progress`: show a tqdm bar (chunks done, rate, time left). `False`, or the
-        environment variable `TQDM_DISABLE=1`, turns it off. A long single
+    - `progress`: show a tqdm bar (chunks done, rate, time left; compilation, shown
+        as such, is left out of the rate). `False`, or the environment variable
+        `TQDM_DISABLE=1`, turns it off. A long single
         simulation has diffrax's progress meter instead:
         `cjax.simulate(..., progress_meter=diffrax.TqdmProgressMeter())`.
 
@@ -186,7 +187,10 @@ def sweep(
             if done[index]:
                 continue
             if compiled is None:
+                bar.set_postfix_str("compiling", refresh=True)
                 compiled = traced.lower().compile()
+                bar.set_postfix_str("", refresh=False)
+                bar.unpause()  # the rate and time left leave compilation out
             start, stop = _bounds(index, chunk, n)
             host_in = [
                 _padded_rows(leaf, start, stop, chunk, dtype)
