@@ -152,6 +152,11 @@ def sweep(
         specs
     )
     out_info, out_treedef = jax.tree.flatten(traced.out_info)
+    if any(jax.dtypes.issubdtype(o.dtype, jax.dtypes.extended) for o in out_info):
+        raise ValueError(
+            "`fn` returns arrays of an extended dtype (typed PRNG keys?), which "
+            "cannot be brought to the host: return `jax.random.key_data(keys)`."
+        )
     outputs = [np.empty((n,) + o.shape[1:], o.dtype) for o in out_info]
 
     store = None
