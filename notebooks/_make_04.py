@@ -363,7 +363,7 @@ ax.legend();
 step counts are deterministic (and asserted above); the wall times depend on the
 machine. When this chapter was written (a 2-core CPU), Tsit5 was the cheapest at
 every accuracy on this small problem: Dopri8 takes the fewest steps, but each step
-(13 stages against 7) and each call cost more. `Projection` keeps the constraint at
+(14 stages against 7) and each call cost more. `Projection` keeps the constraint at
 round-off for the price of one extra linear solve per step; Baumgarte's extra terms
 make the equations stiffer (more steps at the same tolerance). For very long runs at a
 coarse step, the variational integrator's bounded energy error is the qualitative
