@@ -362,6 +362,8 @@ right.legend();
 
 def main():
     nb = new_notebook(cells=CELLS)
+    for i, cell in enumerate(nb.cells):
+        cell.id = f"cell-{i:02d}"  # stable ids: regenerating gives no spurious diff
     nb.metadata["kernelspec"] = {
         "name": "python3",
         "display_name": "Python 3",

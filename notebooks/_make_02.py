@@ -1,6 +1,6 @@
 """Write `02_catenary_isoperimetric.ipynb` (stored without outputs).
 
-    python notebooks/_make_02.py
+python notebooks/_make_02.py
 """
 
 import pathlib
@@ -139,10 +139,11 @@ theorem,
 $$\frac{dU^*}{dC} = \lambda\,\frac{\partial}{\partial C}\left(\int ds - C\right)
 = -\lambda .$$
 
-Paying out a length $\delta C$ of rope at a support at height $y_s$ adds
-$\rho g y_s\,\delta C$ of potential energy, and the tension $T(y_s) = \rho g y_s +
-\lambda$ does the work $-T\,\delta C$: the sum is $-\lambda\,\delta C$ whichever
-support is used. Below, $dU^*/dC$ by central differences (the solve with a
+Paying out a length $\delta C$ of rope at a support at height $y_s$ adds the
+potential energy $\rho g y_s\,\delta C$ of the new piece, while the rope already
+hanging, pulled through the support by the tension $T(y_s) = \rho g y_s + \lambda$,
+sags and loses $T\,\delta C$: the net change is $-\lambda\,\delta C$, the same at
+either support. Below, $dU^*/dC$ by central differences (the solve with a
 different length reuses the compiled program).
 """
     ),
@@ -369,6 +370,8 @@ right.set_title("the multiplier function");
 
 def main():
     nb = new_notebook(cells=CELLS)
+    for i, cell in enumerate(nb.cells):
+        cell.id = f"cell-{i:02d}"  # stable ids: regenerating gives no spurious diff
     nb.metadata["kernelspec"] = {
         "name": "python3",
         "display_name": "Python 3",
