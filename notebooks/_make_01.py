@@ -195,8 +195,8 @@ v'(h) = \frac{(l - h^2/b)(l - 5h^2/b)}{4\pi},$$
 
 so there are four stationary points: $h = \pm\sqrt{bl/5}$ and $h = \pm\sqrt{bl}$
 (where $a = 0$ and $\lambda = 0$). The sign of $v''(h)$ classifies each one. Newton's
-method converges to the stationary point nearest its start; `sol.kind` is judged from
-the reduced Hessian of $F^*$, independently of $v$.
+method typically converges to the stationary point nearest its start; `sol.kind` is
+judged from the reduced Hessian of $F^*$, independently of $v$.
 """
     ),
     code(
