@@ -424,6 +424,16 @@ def solve_functional(
     pass). Composes with `jax.jit` and `jax.vmap`.
     """
     args = as_traced_args(args)
+    if (
+        callable(y0)
+        and isinstance(functional, Functional)
+        and isinstance(discretization, AbstractDiscretization)
+    ):
+        # Evaluated here, outside the compiled solve: a callable would be a static
+        # argument of it, so every new function (a fresh closure per call) would
+        # compile the whole solve again. Values at the nodes are traced.
+        nodes = discretization.nodes(functional.interval)
+        y0 = jax.vmap(lambda x: jnp.asarray(y0(x)))(nodes)
     return _solve_functional(
         functional, args, discretization, solver, y0, max_steps, throw
     )

@@ -295,3 +295,27 @@ def test_no_recompilation_when_args_change():
         )
         assert sol.result == cjax.RESULTS.successful
     assert lagrangian.count == count
+
+
+def test_a_new_starting_function_does_not_recompile():
+    """A fresh closure as `y0` on every call (as the scenes' `solve` make) is
+    evaluated at the nodes outside the compiled solve: one compilation for all."""
+    lagrangian = TraceCounter(cat.potential_energy)
+    fun = cjax.Functional(
+        lagrangian,
+        (0.0, 1.0),
+        (0.0, 0.0),
+        (cjax.IntegralConstraint(cat.arc_length, cat.rope_length),),
+    )
+    disc = cjax.PiecewiseLinear(11)
+    counts = []
+    for sag in (0.3, 0.35, 0.4):
+        sol = cjax.solve_functional(
+            fun,
+            {"rho_g": 1.0, "length": 1.2},
+            discretization=disc,
+            y0=lambda x, s=sag: -s * 4 * x * (1 - x),
+        )
+        assert sol.result == cjax.RESULTS.successful
+        counts.append(lagrangian.count)
+    assert counts[0] > 0 and counts[1] == counts[0] == counts[2]
