@@ -65,11 +65,12 @@ class FitResult(eqx.Module):
 
 
 class _State(eqx.Module):
-    params: PyTree[Array]
+    candidate: PyTree[Array]  # the parameters to evaluate next
     opt_state: Any
+    params: PyTree[Array]  # the last evaluated parameters with finite loss and grad
     loss: Float[Array, ""]
     grad: PyTree[Array]
-    step: Int[Array, ""]
+    evaluations: Int[Array, ""]  # of `params` so far; steps taken = evaluations - 1
     converged: Bool[Array, ""]
     result: RESULTS
 
@@ -82,6 +83,7 @@ def fit(
     steps: int = 1000,
     args: Args = None,
     gtol=None,
+    jac: str = "bwd",
     progress: bool = True,
     throw: bool = True,
 ) -> FitResult:
@@ -111,6 +113,14 @@ def fit(
         leaves of `params`) is at most `gtol`. Then not reaching it within `steps` is
         a failure, `RESULTS.nonlinear_max_steps_reached`. With `gtol=None` (default)
         the fit runs all `steps` and succeeds unless something becomes non-finite.
+    - `jac`: how the gradient is computed: `"bwd"` (default), reverse mode (one
+        backward pass, whatever the number of parameters); `"fwd"`, forward mode
+        (`jax.jacfwd`: one forward pass per parameter, cheaper for a few parameters
+        and a long computation, e.g. a simulation with
+        `adjoint=diffrax.ForwardMode()`, whose default adjoint supports only reverse
+        mode). The same convention as optimistix's `options=dict(jac=...)`. A line
+        search inside the optimizer (`optax.lbfgs`) differentiates `value_fn` itself,
+        in reverse mode.
     - `progress`: show a progress bar (tqdm) with the loss, updated every block of
         100 steps. Also off when the environment variable `TQDM_DISABLE` is set to a
         true value (`1`), and inside `jax.jit` / `jax.vmap`.
@@ -150,6 +160,10 @@ def fit(
         )
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
         raise ValueError(f"`steps` must be a non-negative int, got {steps!r}.")
+    if jac not in ("bwd", "fwd"):
+        raise ValueError(
+            f'`jac` must be "bwd" (reverse mode) or "fwd" (forward mode), got {jac!r}.'
+        )
     params0 = _as_params(params0)
     args = as_traced_args(args)
     if gtol is not None:
@@ -161,9 +175,9 @@ def fit(
         isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves((params0, args))
     )
     if traced:
-        res = _fit_traced(loss, optimizer, gtol, steps, params0, args)
+        res = _fit_traced(loss, optimizer, gtol, jac, steps, params0, args)
     else:
-        res = _fit_blocks(loss, optimizer, gtol, steps, params0, args, progress)
+        res = _fit_blocks(loss, optimizer, gtol, jac, steps, params0, args, progress)
     if throw:
         res = res.result.error_if(res, res.result != RESULTS.successful)
     return res
@@ -191,23 +205,22 @@ def _as_params(params0):
     return jtu.tree_map(convert, params0)
 
 
-def _check_loss(loss, params0, args) -> None:
-    out = jax.eval_shape(loss, params0, args)
-    if not isinstance(out, jax.ShapeDtypeStruct):
+def _check_loss_value(value) -> None:
+    if not isinstance(value, (jax.Array, jax.ShapeDtypeStruct)):
         raise ValueError(
             "`loss(params, args)` must return one scalar array, got a "
-            f"{type(out).__name__}. If it also returns diagnostics, leave them out "
+            f"{type(value).__name__}. If it also returns diagnostics, leave them out "
             "(compute them afterwards from `FitResult.params`)."
         )
-    if out.shape != ():
+    if value.shape != ():
         raise ValueError(
-            f"`loss(params, args)` must return a scalar, got shape {out.shape}. Reduce "
-            "it to one number, e.g. `0.5 * jnp.sum(residuals**2)`."
+            f"`loss(params, args)` must return a scalar, got shape {value.shape}. "
+            "Reduce it to one number, e.g. `0.5 * jnp.sum(residuals**2)`."
         )
-    if not jnp.issubdtype(out.dtype, jnp.floating):
+    if not jnp.issubdtype(value.dtype, jnp.floating):
         raise ValueError(
             f"`loss(params, args)` must return a real floating-point scalar, got "
-            f"{out.dtype}."
+            f"{value.dtype}."
         )
 
 
@@ -218,101 +231,135 @@ def _optax_promotion():
     return jax.numpy_dtype_promotion("standard")
 
 
-def _value_and_grad(loss, params, args, opt_state):
-    """The loss and its gradient at `params`, reusing those a line search stored in
-    the optimizer state (e.g. `optax.lbfgs`) when there are exactly one of each."""
+def _value_and_grad(loss, params, args, opt_state, jac):
+    """The loss and its gradient at `params` (one trace of `loss`), reusing those a
+    line search stored in the optimizer state (e.g. `optax.lbfgs`) when it holds
+    exactly one of each."""
     try:
         stored = optax.tree.get(opt_state, "value"), optax.tree.get(opt_state, "grad")
     except (KeyError, ValueError):
         stored = (None, None)
     if stored[0] is None or stored[1] is None:
-        return jax.value_and_grad(loss)(params, args)
+        if jac == "fwd":
+
+            def value_twice(p):
+                value = loss(p, args)
+                _check_loss_value(value)
+                return value, value
+
+            return tuple(reversed(jax.jacfwd(value_twice, has_aux=True)(params)))
+        value, vjp = jax.vjp(lambda p: loss(p, args), params)
+        _check_loss_value(value)
+        (grad,) = vjp(jnp.ones_like(value))
+        return value, grad
+    _check_loss_value(jax.eval_shape(loss, params, args))
     return optax.value_and_grad_from_state(loss)(params, args, state=opt_state)
 
 
-def _init(loss, optimizer, params0, args) -> _State:
-    value, grad = jax.value_and_grad(loss)(params0, args)
-    finite = all_finite((params0, value, grad))
-    with _optax_promotion():
-        opt_state = optimizer.init(params0)
-    return _State(
-        params=params0,
-        opt_state=opt_state,
-        loss=value,
-        grad=grad,
-        step=jnp.zeros((), jnp.result_type(int)),
-        converged=jnp.array(False),
-        result=RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite),
-    )
+def _loss_dtype(params0, args):
+    """The dtype the loss history is kept in: that of the parameters and data."""
+    leaves = [
+        leaf
+        for leaf in jtu.tree_leaves((params0, args))
+        if jnp.issubdtype(jnp.result_type(leaf), jnp.floating)
+    ]
+    with jax.numpy_dtype_promotion("standard"):
+        return jnp.result_type(*leaves)
 
 
-def _converged(grad, gtol) -> Bool[Array, ""]:
-    if gtol is None:
-        return jnp.array(False)
-    norm = optax.tree.norm(grad)
-    return norm <= gtol.astype(norm.dtype)
+def _grad_norm(grad) -> Float[Array, ""]:
+    return optax.tree.norm(grad)
 
 
-def _step(loss, optimizer, gtol, steps, args, state: _State) -> _State:
+def _evaluate_and_step(
+    loss, optimizer, gtol, jac, steps, args, state: _State
+) -> _State:
+    """Evaluate the loss and gradient at the candidate; if finite, accept it and (if
+    not converged and steps remain) take the optimizer's step to the next candidate."""
+
     def advance(state: _State) -> _State:
-        if isinstance(optimizer, optax.GradientTransformationExtraArgs):
-            extra = dict(
-                value=state.loss,
-                grad=state.grad,
-                value_fn=lambda p: loss(p, args),
-            )
+        value, grad = _value_and_grad(loss, state.candidate, args, state.opt_state, jac)
+        value = value.astype(state.loss.dtype)
+        finite = all_finite((state.candidate, value, grad))
+        evaluations = state.evaluations + finite.astype(state.evaluations.dtype)
+        if gtol is None:
+            converged = jnp.array(False)
         else:
-            extra = {}
-        with _optax_promotion():
-            updates, opt_state = optimizer.update(
-                state.grad, state.opt_state, state.params, **extra
-            )
-        params = optax.apply_updates(state.params, updates)
-        value, grad = _value_and_grad(loss, params, args, opt_state)
-        finite = all_finite((params, value, grad))
+            norm = _grad_norm(grad)
+            converged = finite & (norm <= gtol.astype(norm.dtype))
         keep = lambda new, old: jtu.tree_map(
             lambda a, b: jnp.where(finite, a, b), new, old
         )
-        grad = keep(grad, state.grad)
-        return _State(
-            params=keep(params, state.params),
-            opt_state=keep(opt_state, state.opt_state),
+        accepted = _State(
+            candidate=state.candidate,
+            opt_state=state.opt_state,
+            params=keep(state.candidate, state.params),
             loss=jnp.where(finite, value, state.loss),
-            grad=grad,
-            step=state.step + finite.astype(state.step.dtype),
-            converged=finite & _converged(grad, gtol),
+            grad=keep(grad, state.grad),
+            evaluations=evaluations,
+            converged=converged,
             result=RESULTS.where(finite, state.result, RESULTS.nonfinite),
         )
 
-    active = (
-        (state.result == RESULTS.successful) & ~state.converged & (state.step < steps)
+        def update(s: _State) -> _State:
+            if isinstance(optimizer, optax.GradientTransformationExtraArgs):
+                extra = dict(
+                    value=s.loss, grad=s.grad, value_fn=lambda p: loss(p, args)
+                )
+            else:
+                extra = {}
+            with _optax_promotion():
+                updates, opt_state = optimizer.update(
+                    s.grad, s.opt_state, s.params, **extra
+                )
+            candidate = optax.apply_updates(s.params, updates)
+            candidate = jtu.tree_map(
+                lambda c, p: c.astype(p.dtype), candidate, s.params
+            )
+            return eqx.tree_at(
+                lambda t: (t.candidate, t.opt_state), s, (candidate, opt_state)
+            )
+
+        more = finite & ~converged & (evaluations <= steps)
+        return jax.lax.cond(more, update, lambda s: s, accepted)
+
+    return jax.lax.cond(_active(state, steps), advance, lambda s: s, state)
+
+
+def _active(state: _State, steps) -> Bool[Array, ""]:
+    return (
+        (state.result == RESULTS.successful)
+        & ~state.converged
+        & (state.evaluations <= steps)
     )
-    return jax.lax.cond(active, advance, lambda s: s, state)
-
-
-def _stopped(state: _State) -> Bool[Array, ""]:
-    return (state.result != RESULTS.successful) | state.converged
 
 
 @eqx.filter_jit
-def _start(loss, optimizer, gtol, params0, args) -> _State:
-    _check_loss(loss, params0, args)  # at trace time: once per compilation
-    state = _init(loss, optimizer, params0, args)
-    return eqx.tree_at(
-        lambda s: s.converged, state, _converged(state.grad, gtol) & ~_stopped(state)
+def _start(optimizer, params0, loss_dtype) -> _State:
+    with _optax_promotion():
+        opt_state = optimizer.init(params0)
+    return _State(
+        candidate=params0,
+        opt_state=opt_state,
+        params=params0,
+        loss=jnp.array(jnp.inf, loss_dtype),
+        grad=jtu.tree_map(jnp.zeros_like, params0),
+        evaluations=jnp.zeros((), jnp.result_type(int)),
+        converged=jnp.array(False),
+        result=RESULTS.successful,
     )
 
 
 @eqx.filter_jit
-def _run_block(loss, optimizer, gtol, block, steps, state, args):
+def _run_block(loss, optimizer, gtol, jac, block, steps, state, args):
     def body(state, _):
-        state = _step(loss, optimizer, gtol, steps, args, state)
+        state = _evaluate_and_step(loss, optimizer, gtol, jac, steps, args, state)
         return state, state.loss
 
     return jax.lax.scan(body, state, length=block)
 
 
-def _finish(state: _State, losses, steps, gtol) -> FitResult:
+def _finish(state: _State, losses, gtol) -> FitResult:
     result = state.result
     if gtol is not None:
         result = RESULTS.where(
@@ -323,46 +370,50 @@ def _finish(state: _State, losses, steps, gtol) -> FitResult:
     return FitResult(
         params=state.params,
         losses=losses,
-        grad_norm=optax.tree.norm(state.grad),
-        steps=state.step,
+        grad_norm=_grad_norm(state.grad),
+        steps=jnp.maximum(state.evaluations - 1, 0),
         result=result,
     )
 
 
-def _fit_traced(loss, optimizer, gtol, steps, params0, args) -> FitResult:
-    start = _start(loss, optimizer, gtol, params0, args)
-    state, losses = _run_block(loss, optimizer, gtol, steps, steps, start, args)
-    losses = jnp.concatenate([jnp.reshape(start.loss, (1,)), losses])
-    return _finish(state, losses, steps, gtol)
+def _fit_traced(loss, optimizer, gtol, jac, steps, params0, args) -> FitResult:
+    state = _start(optimizer, params0, _loss_dtype(params0, args))
+    state, losses = _run_block(
+        loss, optimizer, gtol, jac, steps + 1, steps, state, args
+    )
+    return _finish(state, losses, gtol)
 
 
-def _fit_blocks(loss, optimizer, gtol, steps, params0, args, progress) -> FitResult:
-    state = _start(loss, optimizer, gtol, params0, args)
-    history = [jnp.reshape(state.loss, (1,))]
-    block = min(steps, _BLOCK)
-    num_blocks = math.ceil(steps / block) if block else 0
+def _fit_blocks(
+    loss, optimizer, gtol, jac, steps, params0, args, progress
+) -> FitResult:
+    state = _start(optimizer, params0, _loss_dtype(params0, args))
+    # steps + 1 evaluations (the start and after each step), in blocks.
+    block = min(steps + 1, _BLOCK)
+    num_blocks = math.ceil((steps + 1) / block)
+    history = []
     bar = _progress_bar(steps, progress)
     try:
         done = 0
-        _postfix(bar, state)
         for _ in range(num_blocks):
-            if bool(_stopped(state)):
-                break
             state, losses = _run_block(
-                loss, optimizer, gtol, block, jnp.asarray(steps), state, args
+                loss, optimizer, gtol, jac, block, jnp.asarray(steps), state, args
             )
             history.append(losses)
-            taken = int(state.step)
-            bar.update(min(taken, steps) - done)
-            done = min(taken, steps)
-            _postfix(bar, state)
+            taken = max(int(state.evaluations) - 1, 0)
+            bar.update(taken - done)
+            done = taken
+            if not bar.disable:
+                bar.set_postfix(loss=f"{float(state.loss):.6g}", refresh=True)
+            if not bool(_active(state, steps)):
+                break
     finally:
         bar.close()
     losses = jnp.concatenate(history)[: steps + 1]
     if losses.shape[0] < steps + 1:  # stopped early: the loss stays where it stopped
         pad = jnp.full((steps + 1 - losses.shape[0],), state.loss, losses.dtype)
         losses = jnp.concatenate([losses, pad])
-    return _finish(state, losses, steps, gtol)
+    return _finish(state, losses, gtol)
 
 
 def _progress_bar(total: int, progress: bool):
@@ -371,8 +422,3 @@ def _progress_bar(total: int, progress: bool):
     env = os.environ.get("TQDM_DISABLE", "").strip().lower()
     disabled = (not progress) or env not in ("", "0", "false", "no", "off")
     return tqdm(total=total, desc="fit", unit="step", disable=disabled)
-
-
-def _postfix(bar, state: _State) -> None:
-    if not bar.disable:
-        bar.set_postfix(loss=f"{float(state.loss):.6g}", refresh=True)
