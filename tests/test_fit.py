@@ -8,9 +8,10 @@ import numpy as np
 import optax
 import pytest
 import scipy.optimize
+import scipy.special
 
 import constrained_jax as cjax
-from constrained_jax.scenes import inverse
+from constrained_jax.scenes import catenary, inverse
 
 from .helpers import TraceCounter, tree_allclose
 
@@ -366,4 +367,85 @@ def test_inertia_ratio_from_detachment_angles():
     bound = _minimum_shift_bound(jac, model_error)
     (alpha_lsq,) = _scipy_fit(closed_form_residuals, [0.2])
     assert abs(alpha - alpha_lsq) <= 2 * bound + 1e-12, (alpha, alpha_lsq, bound)
+    assert bound < 1e-3 * se
+
+
+def test_chain_length_and_endpoint_from_points():
+    """The length C and the right end's height yR of a chain hanging from (0, 0) to
+    (1, yR), from 12 heights with noise 0.005; the model solves the variational
+    problem (gradients by the implicit function theorem on its KKT system)."""
+    truth, sigma = np.array([1.5, 0.3]), 0.005
+    x = np.linspace(0.05, 0.95, 12)
+    data = inverse.chain_data(jax.random.key(2), *truth, x, sigma)
+    kw = dict(optimizer=QUASI_NEWTON, steps=40, gtol=1e-6, jac="fwd", progress=False)
+    res = cjax.fit(inverse.chain_loss, {"length": 1.3, "yr": 0.0}, args=data, **kw)
+    assert res.result == cjax.RESULTS.successful and res.steps < 40
+    fitted = np.array([float(res.params["length"]), float(res.params["yr"])])
+
+    observed = np.asarray(data["y"])
+
+    def closed_form_heights(p):
+        return catenary.closed_form(0.0, 0.0, 1.0, p[1], p[0])["y"](x)
+
+    def closed_form_residuals(p):
+        return (closed_form_heights(p) - observed) / sigma
+
+    jac = _jacobian(closed_form_residuals, truth)
+    se = _standard_errors(jac)
+    assert np.all(np.abs(fitted - truth) < 3 * se), (fitted, truth, se)
+
+    exact = {**data, "y": jnp.asarray(closed_form_heights(fitted))}
+    check = cjax.fit(inverse.chain_loss, res.params, args=exact, **kw)
+    model_error = np.sqrt(2 * float(check.losses[0]))
+    assert model_error * sigma < 1e-10  # Chebyshev(24): spectral accuracy
+    bound = _minimum_shift_bound(jac, model_error)
+    lsq = _scipy_fit(closed_form_residuals, [1.3, 0.0])
+    np.testing.assert_allclose(fitted, lsq, rtol=0, atol=2 * bound + 1e-10)
+    assert np.all(2 * bound + 1e-10 < 1e-4 * se)
+
+
+def _pendulum_positions(ts, l, theta0, g):
+    """The exact motion from rest, with SciPy's Jacobi sn (independent of the JAX
+    version in the scene): sin(theta/2) = k sn(K(k) - sqrt(g/l) t | k^2)."""
+    k = np.sin(theta0 / 2)
+    sn = scipy.special.ellipj(scipy.special.ellipk(k**2) - np.sqrt(g / l) * ts, k**2)[0]
+    theta = 2 * np.arcsin(k * sn)
+    return l * np.stack([np.sin(theta), -np.cos(theta)], axis=-1)
+
+
+def test_pendulum_length_from_trajectory():
+    """The length l of a pendulum released from rest at 0.8 rad, from 20 noisy
+    positions (noise 0.01 in each coordinate) over about one period; the model
+    simulates the constrained Cartesian pendulum."""
+    l_true, theta0, g, sigma = 1.0, 0.8, 9.81, 0.01
+    ts = np.linspace(0.1, 2.0, 20)
+    data = inverse.pendulum_data(jax.random.key(1), l_true, theta0, ts, sigma, g)
+    # The scene's closed form (JAX, AGM) against SciPy's.
+    theta = np.asarray(inverse.pendulum_angle(ts, 1.3, theta0, g))
+    np.testing.assert_allclose(
+        1.3 * np.stack([np.sin(theta), -np.cos(theta)], axis=-1),
+        _pendulum_positions(ts, 1.3, theta0, g),
+        atol=1e-13,
+    )
+    kw = dict(optimizer=QUASI_NEWTON, steps=40, gtol=1e-6, jac="fwd", progress=False)
+    res = cjax.fit(inverse.bob_loss, {"l": 0.8}, args=data, **kw)
+    assert res.result == cjax.RESULTS.successful and res.steps < 40
+    l_fit = float(res.params["l"])
+
+    observed = np.asarray(data["q"])
+
+    def closed_form_residuals(p):
+        return np.ravel((_pendulum_positions(ts, p[0], theta0, g) - observed) / sigma)
+
+    jac = _jacobian(closed_form_residuals, [l_true])
+    (se,) = _standard_errors(jac)
+    assert abs(l_fit - l_true) < 3 * se, (l_fit, l_true, se)
+
+    exact = {**data, "q": jnp.asarray(_pendulum_positions(ts, l_fit, theta0, g))}
+    check = cjax.fit(inverse.bob_loss, res.params, args=exact, **kw)
+    model_error = np.sqrt(2 * float(check.losses[0]))
+    assert model_error * sigma < 1e-6  # tolerances 1e-8 over one period
+    bound = _minimum_shift_bound(jac, model_error)
+    (l_lsq,) = _scipy_fit(closed_form_residuals, [0.8])
+    assert abs(l_fit - l_lsq) <= 2 * bound + 1e-12, (l_fit, l_lsq, bound)
     assert bound < 1e-3 * se
