@@ -22,6 +22,7 @@ Saved times that are not finite (after a re-contact, see
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,8 +46,6 @@ def _pyplot():
 def _axes(ax):
     if ax is None:
         _, ax = _pyplot().subplots()
-    else:
-        _pyplot()
     return ax
 
 
@@ -422,13 +421,15 @@ def extremum_2d(
     *,
     plane: tuple[int, int] = (0, 1),
     span: float | tuple[float, float] | None = None,
+    equal_aspect: bool = True,
     resolution: int = 121,
     levels: int = 20,
     ax=None,
 ):
     """A constrained extremum in a plane: contours of `F`, the constraint curves
-    `G_j = 0`, the extremum, and the gradients `grad F` and `-lambda_j grad G_j` there
-    (equal when the constraint is active: the arrows coincide).
+    `G_j = 0`, the level of `F` through the extremum (tangent to the constraint
+    there), the extremum, and the gradients `grad F` and `-lambda_j grad G_j` there
+    (with one constraint they are equal: the arrows coincide).
 
     **Arguments:**
 
@@ -438,9 +439,12 @@ def extremum_2d(
     - `args`: the parameters used for the solve.
     - `plane`: the two coordinates spanning the picture; the others are held at
         `sol.x` (the picture is the slice through the extremum).
-    - `span`: half-widths of the box around the extremum (default: 80% of each
-        coordinate's magnitude, at least 0.1).
-    - `resolution`: grid points per side; `levels`: number of contour levels.
+    - `span`: half-width of the box around the extremum, one number or one per
+        axis (default: 80% of the larger coordinate's magnitude, at least 0.1).
+    - `equal_aspect`: draw both axes to the same scale, so that the gradients are
+        seen perpendicular to the level curves.
+    - `resolution`: grid points per side; `levels`: number of contour levels
+        (spread between the 2nd and 98th percentiles of `F` in the box).
     - `ax`: the axes to draw on (a new figure when `None`).
 
     **Returns:** the `matplotlib.axes.Axes`.
@@ -457,8 +461,8 @@ def extremum_2d(
         raise ValueError(f"`plane` must name two different coordinates, got {plane}.")
     x_np = np.asarray(x, dtype=np.float64)
     if span is None:
-        span = (max(0.8 * abs(x_np[i]), 0.1), max(0.8 * abs(x_np[j]), 0.1))
-    elif np.ndim(span) == 0:
+        span = max(0.8 * max(abs(x_np[i]), abs(x_np[j])), 0.1)
+    if np.ndim(span) == 0:
         span = (float(span), float(span))
     u = np.linspace(x_np[i] - span[0], x_np[i] + span[0], resolution)
     v = np.linspace(x_np[j] - span[1], x_np[j] + span[1], resolution)
@@ -467,18 +471,34 @@ def extremum_2d(
     points[:, i], points[:, j] = uu.ravel(), vv.ravel()
     points = jnp.asarray(points, x.dtype)
 
-    def g(z):
+    def g(z, args):
         return jnp.atleast_1d(constraints(z, args))
 
-    f_grid = np.asarray(jax.vmap(lambda z: fn(z, args))(points)).reshape(uu.shape)
-    g_grid = np.asarray(jax.vmap(g)(points)).reshape(uu.shape + (-1,))
-    grad_f = np.asarray(jax.grad(fn)(x, args))
-    jac_g = np.asarray(jax.jacfwd(g)(x))
+    @eqx.filter_jit
+    def evaluate(points, x, args):
+        # One compiled program (eager evaluation would compile every operation).
+        f_grid = jax.vmap(lambda z: fn(z, args))(points)
+        g_grid = jax.vmap(lambda z: g(z, args))(points)
+        return f_grid, g_grid, jax.grad(fn)(x, args), jax.jacfwd(g)(x, args)
+
+    f_grid, g_grid, grad_f, jac_g = (np.asarray(a) for a in evaluate(points, x, args))
+    f_grid = f_grid.reshape(uu.shape)
+    g_grid = g_grid.reshape(uu.shape + (-1,))
     lam = np.asarray(sol.multipliers).reshape(-1)
 
     ax = _axes(ax)
-    contours = ax.contour(uu, vv, f_grid, levels=levels, cmap="viridis")
+    value = float(fn(x, args))
+    # Levels spread over the bulk of the values in the box (not its extremes).
+    lo, hi = np.percentile(f_grid, [2, 98])
+    contours = ax.contour(
+        uu, vv, f_grid, levels=np.linspace(lo, hi, levels), cmap="viridis"
+    )
     ax.clabel(contours, fontsize="x-small")
+    # The level through the extremum: tangent to the constraint there.
+    ax.contour(
+        uu, vv, f_grid, levels=[value], colors="k", linewidths=1.5, linestyles="--"
+    )
+    ax.plot([], [], "k--", label=f"level F = {value:.4g}")
     for k in range(g_grid.shape[-1]):
         ax.contour(uu, vv, g_grid[..., k], levels=[0.0], colors="C3")
     ax.plot([], [], color="C3", label="constraint $G = 0$")
@@ -512,5 +532,7 @@ def extremum_2d(
         ax.plot([], [], color=f"C{k}", label=name)
     ax.set_xlabel(f"$x_{{{i}}}$")
     ax.set_ylabel(f"$x_{{{j}}}$")
+    if equal_aspect:
+        ax.set_aspect("equal")
     ax.legend(fontsize="small")
     return ax
