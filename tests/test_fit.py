@@ -62,6 +62,12 @@ def test_gradient_descent_iterates_match_closed_form():
     grad = _A @ x - np.asarray(B1)
     assert 1e-11 < np.linalg.norm(grad) < 1e-8  # not at round-off
     np.testing.assert_allclose(res.grad_norm, np.linalg.norm(grad), rtol=1e-4)
+    # Forward-mode gradients: the same iterates.
+    fwd = cjax.fit(
+        quadratic, X0, args=B1, optimizer=SGD, steps=steps, jac="fwd", progress=False
+    )
+    np.testing.assert_allclose(fwd.losses, expected, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(fwd.params, x, rtol=1e-13)
 
 
 def test_default_adam_reaches_the_minimum():
@@ -281,6 +287,8 @@ def test_bad_input():
         cjax.fit(quadratic, X0, args=B1, steps=10.0)
     with pytest.raises(ValueError, match="gtol"):
         cjax.fit(quadratic, X0, args=B1, gtol=0.0)
+    with pytest.raises(ValueError, match="jac"):
+        cjax.fit(quadratic, X0, args=B1, jac="central")
     with pytest.raises(ValueError, match="no arrays"):
         cjax.fit(quadratic, {}, args=B1)
     with pytest.raises(ValueError, match="real"):
