@@ -1,24 +1,265 @@
-"""The command line: the tour checks every scene against its closed form."""
+"""The command line: the tour checks every scene against its closed form and draws
+its pictures; `scene NAME --param` runs one scene; failures give exit status 1.
+
+One tour runs per test module (compilation dominates: ~1 min on 2 cores); the
+`scene` tests after it reuse its compiled programs (same process)."""
+
+import contextlib
+import importlib.metadata
+import io
+import math
+import re
+import subprocess
+import sys
 
 import pytest
 
+import constrained_jax.__main__ as cli
 from constrained_jax.__main__ import main
 
 
-def test_tour_passes(capsys):
-    assert main(["tour"]) == 0
-    out = capsys.readouterr().out
+SCENES = [
+    "cylinder_volume",
+    "pendulum",
+    "two_cylinders",
+    "rolling_disk",
+    "rotating_hoop",
+    "catenary",
+    "dido",
+    "sphere_geodesic",
+]
+PICTURES = [
+    "cylinder_extremum.png",
+    "two_cylinders_normal_force.png",
+    "catenary.png",
+    "work_precision.png",
+]
+
+
+def _main(argv):
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(argv)
+    return code, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def tour(tmp_path_factory):
+    out_dir = tmp_path_factory.mktemp("tour")
+    code, out = _main(["tour", "--out", str(out_dir)])
+    return code, out, out_dir
+
+
+def _rows(out):
+    """Table rows as {(scene, quantity): (computed, closed form, rel. error, tol)}."""
+    rows = {}
+    for line in out.splitlines():
+        if not line.endswith((" ok", " FAIL")):
+            continue
+        scene, quantity, *numbers = re.split(r"\s{2,}", line.strip())
+        computed, reference, rel, tol = (float(v) for v in numbers[:4])
+        rows[(scene, quantity)] = (computed, reference, rel, tol)
+    return rows
+
+
+def test_tour_passes(tour):
+    code, out, _ = tour
+    assert code == 0, out
     assert "all checks passed" in out
     assert "FAIL" not in out
-    assert "cylinder_volume(b=0.001, l=1000)" in out
+    rows = _rows(out)
+    scenes = {scene for scene, _ in rows}
+    assert set(SCENES) <= scenes
+    assert "cylinder_volume(b=0.001, l=1000)" in scenes
+    assert ("work-precision", "RATTLE order (slope)") in rows
+    assert re.search(r"total \d+\.\d s", out)
 
 
-def test_one_scene_with_parameters(capsys):
-    assert main(["scene", "cylinder_volume", "--b", "2", "--l", "3"]) == 0
-    assert "cylinder_volume(b=2, l=3)" in capsys.readouterr().out
+def test_tour_closed_forms_are_the_lectures(tour):
+    """The closed-form column is the lecture's formula (recomputed here), and every
+    relative error is within its stated tolerance."""
+    _, out, _ = tour
+    rows = _rows(out)
+    for _, _, rel, tol in rows.values():
+        assert rel <= tol
+    # Cylinder: a = 2l/(5 pi), h = sqrt(bl/5).
+    assert rows[("cylinder_volume", "radius a")][1] == pytest.approx(2 / (5 * math.pi))
+    assert rows[("cylinder_volume", "height h")][1] == pytest.approx(math.sqrt(0.2))
+    # Two cylinders (theta0 = 0.2, alpha = 0.5): theta* = arccos(2 cos theta0/3.5).
+    theta_star = math.acos(2 * math.cos(0.2) / 3.5)
+    assert rows[("two_cylinders", "detachment angle")][1] == pytest.approx(theta_star)
+    # Pendulum (theta0 = 1): tension at the bottom m g (3 - 2 cos theta0).
+    tension = 9.81 * (3 - 2 * math.cos(1.0))
+    assert rows[("pendulum", "tension at T/4")][1] == pytest.approx(tension)
+    # Dido (a = 1, C = 2.5): lambda = -R with sin(theta)/theta = 2a/C, R = a/sin.
+    theta = _bisect(lambda t: math.sin(t) / t - 0.8, 1e-9, math.pi / 2)
+    radius = 1 / math.sin(theta)
+    assert rows[("dido", "multiplier (-R)")][1] == pytest.approx(-radius)
+
+
+def _bisect(fn, lo, hi):
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if (fn(mid) > 0) == (fn(lo) > 0):
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def test_tour_writes_its_pictures(tour):
+    code, out, out_dir = tour
+    for name in PICTURES:
+        path = out_dir / name
+        assert path.is_file(), out
+        data = path.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n"
+        # Width and height from the IHDR chunk: the figure's 8 x 5.5 in at 100 dpi.
+        width = int.from_bytes(data[16:20], "big")
+        height = int.from_bytes(data[20:24], "big")
+        assert (width, height) == (800, 550)
+        assert len(data) > 20_000  # drawn, not blank
+        assert f"picture: {path}" in out
+    assert sorted(p.name for p in out_dir.iterdir()) == sorted(PICTURES)
+
+
+def test_one_scene_with_parameters(tour, tmp_path):
+    code, out = _main(
+        ["scene", "cylinder_volume", "--b", "2", "--l", "3", "--no-plots"]
+    )
+    assert code == 0, out
+    rows = _rows(out)
+    # a = 2l/(5 pi) with l = 3.
+    assert rows[("cylinder_volume(b=2, l=3)", "radius a")][1] == pytest.approx(
+        6 / (5 * math.pi)
+    )
+    assert not any(tmp_path.iterdir())
+
+    code, out = _main(
+        [
+            "scene",
+            "two_cylinders",
+            "--theta0",
+            "0.3",
+            "--alpha",
+            "1",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert code == 0, out
+    rows = _rows(out)
+    label = "two_cylinders(theta0=0.3, alpha=1)"
+    theta_star = math.acos(2 * math.cos(0.3) / 4)
+    assert rows[(label, "detachment angle")][1] == pytest.approx(theta_star)
+    assert (tmp_path / "two_cylinders_normal_force.png").stat().st_size > 20_000
+
+
+@pytest.mark.parametrize(
+    "argv, label",
+    [
+        (
+            ["pendulum", "--theta0", "0.5", "--periods", "2"],
+            "pendulum(theta0=0.5, periods=2)",
+        ),
+        (["catenary", "--length", "2", "--yr", "0.5"], "catenary(length=2, yr=0.5)"),
+        (["sphere_geodesic", "--radius", "2"], "sphere_geodesic(radius=2)"),
+    ],
+)
+def test_more_scenes_with_parameters(tour, argv, label):
+    code, out = _main(["scene", *argv, "--no-plots"])
+    assert code == 0, out
+    assert {scene for scene, _ in _rows(out)} == {label}
+
+
+def test_help_explains_each_command_and_scene(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--help"])
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    for word in ("tour", "scene", "list", "tolerance"):
+        assert word in text
+    with pytest.raises(SystemExit) as info:
+        main(["scene", "pendulum", "--help"])
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    assert "--theta0" in text and "(default 1)" in text
+    assert "--no-plots" in text and "--out" in text
+    with pytest.raises(SystemExit):
+        main(["tour", "--help"])
+    assert "work-precision" in capsys.readouterr().out
+
+
+def test_list_names_every_scene():
+    code, out = _main(["list"])
+    assert code == 0
+    for name in SCENES:
+        assert re.search(rf"^{name}$", out, re.MULTILINE)
 
 
 def test_unknown_scene_is_an_error():
     with pytest.raises(SystemExit) as info:
         main(["scene", "no_such_scene"])
     assert info.value.code != 0
+
+
+def test_impossible_parameters_say_why():
+    with pytest.raises(SystemExit) as info:
+        main(["scene", "catenary", "--length", "0.5", "--no-plots"])
+    assert "must exceed the chord" in str(info.value.code)
+    with pytest.raises(SystemExit) as info:
+        main(["scene", "rotating_hoop", "--omega", "1", "--no-plots"])
+    assert "omega^2 > g/rho" in str(info.value.code)
+
+
+def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
+    from constrained_jax.scenes import cylinder_volume
+
+    closed_form = cylinder_volume.closed_form
+
+    def wrong(b, l):
+        ref = dict(closed_form(b, l))
+        ref["a"] = ref["a"] * (1 + 1e-6)  # a relative error of 1e-6 > 1e-10
+        return ref
+
+    monkeypatch.setattr(cylinder_volume, "closed_form", wrong)
+    code, out = _main(["scene", "cylinder_volume", "--no-plots"])
+    assert code == 1
+    assert "SOME CHECKS FAILED" in out
+    (failed,) = [line for line in out.splitlines() if line.endswith("FAIL")]
+    assert "radius a" in failed
+
+
+def test_nan_never_passes():
+    row = cli._Row("s", "q", float("nan"), 1.0, 1e-3, 0.0)
+    assert not row.passed
+    row = cli._Row("s", "q (/l)", 1e-9, 0.0, 1e-8, 0.0, scale=1.0)
+    assert row.passed and row.rel_error == pytest.approx(1e-9)
+
+
+def test_without_matplotlib_the_checks_run_and_say_how_to_install(
+    tour, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(cli, "_have_matplotlib", lambda: False)
+    code, out = _main(["scene", "cylinder_volume", "--out", str(tmp_path)])
+    assert code == 0
+    assert "pip install 'constrained_jax[plot]'" in out
+    assert "all checks passed" in out
+    assert not any(tmp_path.iterdir())
+
+
+def test_console_script_and_module_entry_point():
+    (script,) = [
+        ep
+        for ep in importlib.metadata.entry_points(group="console_scripts")
+        if ep.name == "constrained-jax"
+    ]
+    assert script.value == "constrained_jax.__main__:main"
+    done = subprocess.run(
+        [sys.executable, "-m", "constrained_jax", "list"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "two_cylinders" in done.stdout
