@@ -354,7 +354,6 @@ def _cylinder_volume(b: float = 1.0, l: float = 1.0) -> list[_Job]:
                 sol,
                 args,
                 span=(0.8 * a, 0.8 * h),
-                equal_aspect=False,
                 levels=12,
                 ax=ax,
             )

@@ -421,7 +421,7 @@ def extremum_2d(
     *,
     plane: tuple[int, int] = (0, 1),
     span: float | tuple[float, float] | None = None,
-    equal_aspect: bool = True,
+    equal_aspect: bool = False,
     resolution: int = 121,
     levels: int = 20,
     ax=None,
@@ -440,9 +440,11 @@ def extremum_2d(
     - `plane`: the two coordinates spanning the picture; the others are held at
         `sol.x` (the picture is the slice through the extremum).
     - `span`: half-width of the box around the extremum, one number or one per
-        axis (default: 80% of the larger coordinate's magnitude, at least 0.1).
+        axis (default: 80% of each coordinate's magnitude, at least 0.1; with
+        `equal_aspect`, 80% of the larger one for both).
     - `equal_aspect`: draw both axes to the same scale, so that the gradients are
-        seen perpendicular to the level curves.
+        seen perpendicular to the level curves (off by default: coordinates of
+        different scales would give a thin strip).
     - `resolution`: grid points per side; `levels`: number of contour levels
         (spread between the 2nd and 98th percentiles of `F` in the box).
     - `ax`: the axes to draw on (a new figure when `None`).
@@ -460,8 +462,10 @@ def extremum_2d(
     if len({i % x.shape[0], j % x.shape[0]}) != 2:
         raise ValueError(f"`plane` must name two different coordinates, got {plane}.")
     x_np = np.asarray(x, dtype=np.float64)
-    if span is None:
+    if span is None and equal_aspect:
         span = max(0.8 * max(abs(x_np[i]), abs(x_np[j])), 0.1)
+    elif span is None:
+        span = (max(0.8 * abs(x_np[i]), 0.1), max(0.8 * abs(x_np[j]), 0.1))
     if np.ndim(span) == 0:
         span = (float(span), float(span))
     u = np.linspace(x_np[i] - span[0], x_np[i] + span[0], resolution)

@@ -294,7 +294,9 @@ def test_extremum_2d_on_the_circle():
         result=cjax.RESULTS.successful,
         stats={},
     )
-    ax = cjax.plot.extremum_2d(fn, circle, sol, None, span=0.6, ax=_ax())
+    ax = cjax.plot.extremum_2d(
+        fn, circle, sol, None, span=0.6, equal_aspect=True, ax=_ax()
+    )
     star = [line for line in ax.get_lines() if line.get_marker() == "*"][0]
     np.testing.assert_allclose([star.get_xdata()[0], star.get_ydata()[0]], [s, s])
     contour_sets = [c for c in ax.collections if hasattr(c, "levels")]
@@ -316,6 +318,10 @@ def test_extremum_2d_on_the_circle():
     direction = heads[0] - tails[0]
     np.testing.assert_allclose(direction / np.linalg.norm(direction), [s, s])
     assert ax.get_aspect() == 1.0
+    # By default each axis has its own scale, and its own span (80% of |x_i|).
+    ax = cjax.plot.extremum_2d(fn, circle, sol, None, ax=_ax())
+    assert ax.get_aspect() == "auto"
+    np.testing.assert_allclose(ax.get_xlim(), [0.2 * s, 1.8 * s])
 
 
 def test_extremum_2d_needs_a_flat_point():
