@@ -7,6 +7,7 @@ from . import (
     catenary as catenary,
     cylinder_volume as cylinder_volume,
     dido as dido,
+    inverse as inverse,
     pendulum as pendulum,
     rolling_disk as rolling_disk,
     rotating_hoop as rotating_hoop,
