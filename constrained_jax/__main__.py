@@ -700,22 +700,24 @@ def _dido(a: float = 1.0, length: float = 2.5) -> list[_Job]:
 
     def finish(sol, seconds):
         _warn_failure(sol.result, label)
-        # Pointwise values converge like rho^-32 (Chebyshev(32); the arc's branch
-        # points at x = +-R give rho = (R + sqrt(R^2 - a^2))/a), an a-priori bound
-        # (as in the tests); integrals converge faster.
+        # Chebyshev(32) on the arc, whose branch points x = +-R lie at a distance
+        # rho = (R + sqrt(R^2 - a^2))/a (Bernstein ellipse): pointwise values converge
+        # like rho^-32 (as in the tests), integrals like rho^-64 (a-priori rates,
+        # constants ~1). Near the semicircle (C -> pi a) rho -> 1: no accuracy left.
         radius = ref["radius"]
         rho = (radius + math.sqrt(max(radius**2 - a**2, 0.0))) / a
         pointwise = max(rho**-32 / abs(ref["y"](0.0)), 1e-12)
+        integral = rho**-64
         rows = _rows(
             label,
             seconds,
             [
-                _check("area A", sol.value, ref["value"], 1e-10),
+                _check("area A", sol.value, ref["value"], max(integral, 1e-10)),
                 _check(
                     "multiplier (-R)",
                     sol.multipliers.integral[0],
                     ref["multiplier"],
-                    1e-9,
+                    max(integral, 1e-9),
                 ),
                 _check("height y(0)", sol(jnp.asarray(0.0)), ref["y"](0.0), pointwise),
             ],
@@ -1013,7 +1015,12 @@ _SCENES: dict[str, _Scene] = {
         _dido,
         {
             "a": (1.0, "half-width of the shore [-a, a]"),
-            "length": (2.5, "length of the curve (2a < length <= pi a)"),
+            "length": (
+                2.5,
+                "length of the curve, 2a < length <= pi a (towards pi a the arc gets "
+                "vertical end tangents and the spectral accuracy, hence the "
+                "tolerances, degrades)",
+            ),
         },
         "Dido's problem: the largest area for a given length is a circular arc, with "
         "multiplier lambda = -R",
