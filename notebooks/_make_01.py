@@ -3,18 +3,7 @@
 python notebooks/_make_01.py
 """
 
-import pathlib
-
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-
-def md(text):
-    return new_markdown_cell(text.strip())
-
-
-def code(text):
-    return new_code_cell(text.strip())
+from _cells import code, md, write
 
 
 CELLS = [
@@ -360,19 +349,5 @@ right.legend();
 ]
 
 
-def main():
-    nb = new_notebook(cells=CELLS)
-    for i, cell in enumerate(nb.cells):
-        cell.id = f"cell-{i:02d}"  # stable ids: regenerating gives no spurious diff
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    path = pathlib.Path(__file__).with_name("01_lagrange_multipliers.ipynb")
-    nbformat.write(nb, path)
-    print("wrote", path)
-
-
 if __name__ == "__main__":
-    main()
+    write(CELLS, "01_lagrange_multipliers.ipynb")

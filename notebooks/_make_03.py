@@ -3,18 +3,7 @@
 python notebooks/_make_03.py
 """
 
-import pathlib
-
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-
-def md(text):
-    return new_markdown_cell(text.strip())
-
-
-def code(text):
-    return new_code_cell(text.strip())
+from _cells import code, md, write
 
 
 CELLS = [
@@ -276,17 +265,5 @@ ax.legend();
 ]
 
 
-def main():
-    nb = new_notebook(cells=CELLS)
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    path = pathlib.Path(__file__).with_name("03_two_cylinders.ipynb")
-    nbformat.write(nb, path)
-    print(f"wrote {path}")
-
-
 if __name__ == "__main__":
-    main()
+    write(CELLS, "03_two_cylinders.ipynb")
