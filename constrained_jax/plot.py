@@ -220,11 +220,19 @@ def multipliers(
     )
     index = _indices(indices, values.shape[1], "the forces" if forces else "lambda")
     names = _names(labels, len(index), lambda i: symbol(index[i]), "the selection")
+    released = _released(traj)
+    xr = release_x(traj.release) if released else None
+    if released:
+        # The multipliers jump at the release (the released rows drop to zero):
+        # break the lines there instead of drawing a slope across the jump.
+        cut = int(np.searchsorted(ts[keep], float(traj.release.time), side="right"))
+        if 0 < cut < x.shape[0]:
+            x = np.insert(np.asarray(x, float), cut, np.nan)
+            values = np.insert(np.asarray(values, float), cut, np.nan, axis=0)
     for i, name in zip(index, names, strict=True):
         ax.plot(x, values[:, i], label=name)
     ax.axhline(0.0, color="0.8", linewidth=0.8, zorder=0)
-    if mark_release and _released(traj):
-        xr = release_x(traj.release)
+    if mark_release and released:
         ax.axvline(xr, color="0.3", linestyle="--", label=f"release at {xr:.6g}")
         ax.plot([xr], [0.0], marker="o", color="k", linestyle="none")
     ax.set_xlabel(against_label or default_label)
