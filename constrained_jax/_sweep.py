@@ -14,6 +14,7 @@ in the same folder, `fsync`, `os.replace`) with the fingerprint's digest and a S
 checksum of its own arrays.
 """
 
+import collections
 import hashlib
 import json
 import math
@@ -59,8 +60,10 @@ def sweep(
     **Arguments:**
 
     - `fn`: maps ONE input (a pytree of arrays, one row of `inputs`) to outputs (a
-        pytree of arrays), written as for `jax.vmap`. It is traced once per call of
-        `sweep` and compiled once for all chunks.
+        pytree of arrays), written as for `jax.vmap`. It is traced and compiled
+        once for all chunks; sweeping the same `fn` object again with the same
+        chunk shapes and devices reuses both (pass the same function, not a new
+        lambda, to repeated sweeps).
     - `inputs`: a pytree whose leaves are arrays (numpy or JAX) with a common leading
         axis of length `N >= 1`: row `i` of every leaf together is input `i`. Keep
         large inputs as numpy arrays: chunks are sliced on the host and only the
@@ -147,10 +150,10 @@ def sweep(
             for leaf, dtype in zip(leaves, dtypes, strict=True)
         ],
     )
-    # One trace (and below, at most one compilation) per sweep.
-    traced = jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding).trace(
-        specs
-    )
+    # At most one trace and one compilation per sweep; none when the same `fn` is
+    # swept again with the same chunk shapes and devices (JAX's caches, through one
+    # jitted function kept per `fn`).
+    traced = _chunk_program(fn, sharding).trace(specs)
     out_info, out_treedef = jax.tree.flatten(traced.out_info)
     if any(jax.dtypes.issubdtype(o.dtype, jax.dtypes.extended) for o in out_info):
         raise ValueError(
@@ -216,6 +219,31 @@ def sweep(
     finally:
         bar.close()
     return jax.tree.unflatten(out_treedef, outputs)
+
+
+# The last few chunk programs, one per `(fn, sharding)`. A strong, bounded cache:
+# the jitted function holds `fn`, so a weak-keyed one would never let go of it.
+_PROGRAMS: "collections.OrderedDict[tuple, Callable]" = collections.OrderedDict()
+_PROGRAMS_KEPT = 16
+
+
+def _chunk_program(fn, sharding):
+    """`jit(vmap(fn))` for `sharding`, the same object for the same `(fn, sharding)`,
+    so that sweeping `fn` again reuses JAX's trace and compilation caches, as a
+    second call of one `jax.jit` function would (so, like it, a `fn` that reads
+    mutable Python state sees that state as it was when first traced)."""
+    make = lambda: jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding)
+    try:
+        key = (fn, sharding)
+        program = _PROGRAMS.pop(key, None)
+    except TypeError:  # unhashable fn: no reuse
+        return make()
+    if program is None:
+        program = make()
+    _PROGRAMS[key] = program
+    while len(_PROGRAMS) > _PROGRAMS_KEPT:
+        _PROGRAMS.popitem(last=False)
+    return program
 
 
 def _round_up(x: int, multiple: int) -> int:

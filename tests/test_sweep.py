@@ -457,3 +457,21 @@ def test_foreign_checkpoint_is_refused(full_checkpoint, tmp_path):
     )
     with pytest.raises(ValueError, match="chunk_000003.npz carries the fingerprint"):
         sweep(fn, inputs)
+
+
+def test_a_second_sweep_of_the_same_fn_does_not_retrace():
+    """The chunk program is kept per `fn`: sweeping it again (new values, same
+    shapes) neither traces nor compiles again, and the answer follows the inputs."""
+    traces = []
+
+    def fn(x):
+        traces.append(None)
+        return jnp.sin(x) * 2.0
+
+    first = cjax.sweep(fn, np.linspace(0.0, 1.0, 10), batch_size=4, progress=False)
+    second = cjax.sweep(fn, np.linspace(1.0, 2.0, 10), batch_size=4, progress=False)
+    assert len(traces) == 1
+    np.testing.assert_allclose(first, 2 * np.sin(np.linspace(0.0, 1.0, 10)), rtol=1e-15)
+    np.testing.assert_allclose(
+        second, 2 * np.sin(np.linspace(1.0, 2.0, 10)), rtol=1e-15
+    )
