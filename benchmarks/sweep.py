@@ -16,10 +16,12 @@ Three measurements, in one run:
    progress=False)` call against one AOT-compiled `jax.jit(jax.vmap(fn))` on all `N`
    inputs at once (numpy in, `device_put`, call, `np.asarray` out: host to host like
    `sweep`; its compile is excluded). `sweep` traces and compiles its chunk program
-   on **every call**; its time is split honestly: a timing wrapper around
-   `jax.stages.Lowered.compile` (it only records when the compilation `sweep` starts
-   returns; nothing else changes) gives the setup (input checks, trace, lower,
-   compile; with a checkpoint also the fingerprints) and the chunk loop after it.
+   on its first call with a given `fn` (later calls reuse it; the repetitions here
+   pass the same `fn`, so the medians are of such calls); its time is split: a
+   timing wrapper around `jax.stages.Lowered.compile` (it only records when the
+   compilation `sweep` starts returns; nothing else changes) gives the setup
+   (input checks, trace, lower, compile; with a checkpoint also the fingerprints)
+   and the chunk loop after it.
    Both are reported, as ratios to the plain call.
 2. **Memory.** XLA's buffer sizes (`compiled.memory_analysis()`: arguments, outputs,
    temporaries) of the chunk program that `sweep` itself compiled (caught by the same
