@@ -15,14 +15,17 @@ checksum of its own arrays.
 """
 
 import collections
+import functools
 import hashlib
 import json
+import logging
 import math
 import operator
 import os
 import pathlib
 import re
 import tempfile
+import types
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -63,7 +66,18 @@ def sweep(
         pytree of arrays), written as for `jax.vmap`. It is traced and compiled
         once for all chunks; sweeping the same `fn` object again with the same
         chunk shapes and devices reuses both (pass the same function, not a new
-        lambda, to repeated sweeps).
+        lambda, to repeated sweeps). Unlike a `jax.jit` function, a kept program is
+        not reused when a Python value `fn` reads has changed since (a global or a
+        closed-over variable reassigned, a numpy array or list written in place,
+        an attribute of an object it reads): `fn` is traced again and, if the
+        computation differs, compiled again, so a sweep never returns values of
+        the old state. What is watched (see `_python_state` in `_sweep.py`):
+        closure cells, defaults, the globals `fn`'s code names and the attributes
+        `module.name` it reads, followed into the functions, containers and
+        objects found there (not into the code of JAX and the other numerical
+        libraries). State hidden beyond that (behind properties, in C
+        extensions, more than 8 levels deep) is not seen: pass changing values
+        as `inputs`, or a new `fn`.
     - `inputs`: a pytree whose leaves are arrays (numpy or JAX) with a common leading
         axis of length `N >= 1`: row `i` of every leaf together is input `i`. Keep
         large inputs as numpy arrays: chunks are sliced on the host and only the
@@ -129,9 +143,22 @@ def sweep(
     (CPU devices forced by `XLA_FLAGS=--xla_force_host_platform_device_count=4`);
     the multi-host pattern above is not tested here.
 
+    **Errors inside `fn`.** A run-time error of `fn` (an `eqx.error_if`, e.g. a solve
+    called with `throw=True` that fails) stops the sweep: the chunk where it
+    happened is evaluated again on subsets of its rows (by bisection, with the same
+    compiled program; only after a failure, so the sweep costs nothing more when
+    nothing fails) and the error raised names the failing rows' indices in
+    `inputs` (`jax.errors.JaxRuntimeError`, the original message included). The
+    chunks finished before it are in the checkpoint, if one is kept. To get every
+    row's answer instead, call the solves with `throw=False` and return their
+    `result` from `fn`: the failing rows are
+    `np.flatnonzero(out.result != cjax.RESULTS.successful)`, and values that are
+    NaN or inf are returned as they are, never dropped.
+
     **Raises:** `ValueError` for leaves that are not arrays or have no leading axis,
-    leading axes of different lengths, `N = 0`, `batch_size < 1`, bad `devices`, or a
-    checkpoint folder from a different sweep.
+    leading axes of different lengths (the message lists each leaf's length), `N =
+    0` (nothing to evaluate: filter empty batches out before calling `sweep`),
+    `batch_size < 1`, bad `devices`, or a checkpoint folder from a different sweep.
     """
     leaves, paths, treedef, n = _check_inputs(inputs)
     batch_size = _check_batch_size(batch_size)
@@ -151,9 +178,9 @@ def sweep(
         ],
     )
     # At most one trace and one compilation per sweep; none when the same `fn` is
-    # swept again with the same chunk shapes and devices (JAX's caches, through one
-    # jitted function kept per `fn`).
-    traced = _chunk_program(fn, sharding).trace(specs)
+    # swept again with the same chunk shapes and devices and the Python values it
+    # reads unchanged (JAX's caches, through one jitted function kept per `fn`).
+    traced = _chunk_traced(fn, sharding, specs)
     out_info, out_treedef = jax.tree.flatten(traced.out_info)
     if any(jax.dtypes.issubdtype(o.dtype, jax.dtypes.extended) for o in out_info):
         raise ValueError(
@@ -204,13 +231,13 @@ def sweep(
                 _padded_rows(leaf, start, stop, chunk, dtype)
                 for leaf, dtype in zip(leaves, dtypes, strict=True)
             ]
-            device_in = jax.device_put(jax.tree.unflatten(treedef, host_in), sharding)
-            device_out = compiled(device_in)
-            host_out = [
-                np.asarray(x)[: stop - start]
-                for x in jax.device_get(jax.tree.leaves(device_out))
-            ]
-            del device_in, device_out  # nothing of this chunk stays on the devices
+            try:
+                host_out = _run_chunk(compiled, host_in, treedef, sharding)
+            except jax.errors.JaxRuntimeError as error:
+                # Only on failure: find the rows that raise (by bisection with the same
+                # compiled program) and say which they are.
+                _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n)
+            host_out = [x[: stop - start] for x in host_out]
             for out, part in zip(outputs, host_out, strict=True):
                 out[start:stop] = part
             if store is not None:
@@ -221,29 +248,263 @@ def sweep(
     return jax.tree.unflatten(out_treedef, outputs)
 
 
-# The last few chunk programs, one per `(fn, sharding)`. A strong, bounded cache:
-# the jitted function holds `fn`, so a weak-keyed one would never let go of it.
-_PROGRAMS: "collections.OrderedDict[tuple, Callable]" = collections.OrderedDict()
+# The last few chunk programs, one per `(fn, sharding, chunk shapes)`, each with the
+# snapshot of the Python values `fn` read when it was traced. A strong, bounded
+# cache: the jitted function holds `fn`, so a weak-keyed one would never let go of it.
+_PROGRAMS: "collections.OrderedDict[tuple, _Program]" = collections.OrderedDict()
 _PROGRAMS_KEPT = 16
 
 
-def _chunk_program(fn, sharding):
-    """`jit(vmap(fn))` for `sharding`, the same object for the same `(fn, sharding)`,
-    so that sweeping `fn` again reuses JAX's trace and compilation caches, as a
-    second call of one `jax.jit` function would (so, like it, a `fn` that reads
-    mutable Python state sees that state as it was when first traced)."""
+class _Program:
+    __slots__ = ("jitted", "state", "kept")
+
+    def __init__(self, jitted, state, kept):
+        self.jitted = jitted
+        self.state = state  # what `_python_state(fn)` gave after tracing
+        self.kept = kept  # the objects `state` names by id (so ids stay unique)
+
+
+def _chunk_traced(fn, sharding, specs):
+    """`jit(vmap(fn))` for `sharding`, traced for `specs`.
+
+    The jitted function is kept per `(fn, sharding, specs)`, so that sweeping `fn`
+    again reuses JAX's trace and compilation caches, as a second call of one
+    `jax.jit` function would. Unlike `jax.jit`, a `fn` whose Python state changed
+    (a global or closed-over value it reads was reassigned or mutated: see
+    `_python_state`) is traced again; if the new jaxpr (text and constants) differs
+    from the kept one, a new program replaces it, so the sweep never returns values
+    computed with the old state. Checking the state costs microseconds; a new trace
+    (tens to hundreds of milliseconds) is paid only when it changed."""
     make = lambda: jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding)
+    leaves, structure = jax.tree.flatten(specs)
+    key = (fn, sharding, structure, tuple((s.shape, s.dtype) for s in leaves))
     try:
-        key = (fn, sharding)
-        program = _PROGRAMS.pop(key, None)
+        kept = _PROGRAMS.pop(key, None)
     except TypeError:  # unhashable fn: no reuse
-        return make()
-    if program is None:
-        program = make()
+        return make().trace(specs)
+    state, objects = _python_state(fn) if kept is not None else (None, None)
+    if kept is not None and state == kept.state:
+        program, traced = kept, kept.jitted.trace(specs)
+    else:
+        jitted = make()
+        traced = jitted.trace(specs)
+        if kept is not None:
+            # The state changed: keep the old program (and its compilation) if the
+            # computation is the same after all (e.g. a global fn does not trace).
+            old = kept.jitted.trace(specs)  # JAX's cache: the jaxpr of the old state
+            if _fn_fingerprint(old.jaxpr) == _fn_fingerprint(traced.jaxpr):
+                jitted, traced = kept.jitted, old
+        # The snapshot after tracing: a trace that mutates what it reads (a list
+        # counting traces) is not a change.
+        program = _Program(jitted, *_python_state(fn))
     _PROGRAMS[key] = program
     while len(_PROGRAMS) > _PROGRAMS_KEPT:
         _PROGRAMS.popitem(last=False)
-    return program
+    return traced
+
+
+# Python state of `fn` (see `_python_state`): packages whose functions are not
+# looked into (their module state is the library's, not the user's), and bounds.
+_LIBRARIES = frozenset(
+    {
+        "builtins",
+        "collections",
+        "constrained_jax",
+        "diffrax",
+        "equinox",
+        "functools",
+        "jax",
+        "jaxlib",
+        "jaxtyping",
+        "lineax",
+        "math",
+        "numpy",
+        "optax",
+        "optimistix",
+        "scipy",
+        "typing",
+    }
+)
+_STATE_DEPTH = 8
+_STATE_OBJECTS = 2000
+_STATE_ITEMS = 256  # items of one container looked at
+
+
+def _python_state(fn) -> tuple[tuple, list]:
+    """A snapshot of the Python values `fn` may read when traced, to tell whether a
+    kept trace of `fn` is stale: returns `(tokens, objects)`, `tokens` comparable
+    with `==`, `objects` the objects named in it by `id` (keep them alive).
+
+    Walks from `fn`: its closure cells, defaults, and the globals its code names
+    (`co_names`, nested code included); for a global module `m`, the attributes
+    `m.name` its code may read; into functions, bound methods, `functools.partial`,
+    `__wrapped__`, tuples, lists, dicts and objects' `__dict__` (eqx.Modules: their
+    fields, e.g. a user's Lagrangian), to depth 8 and 2,000 objects. Scalars and
+    strings enter by value, numpy arrays by a hash of their bytes (in-place writes
+    are seen), anything else (JAX arrays, which are immutable) by identity.
+    Functions of the libraries in `_LIBRARIES` are not looked into. Not seen: state
+    beyond those bounds, behind properties or `__getattr__`, or in C extensions."""
+    tokens: list = []
+    objects: list = []
+    seen: set = set()
+
+    def library(obj) -> bool:
+        module = getattr(obj, "__module__", None)
+        return isinstance(module, str) and module.split(".")[0] in _LIBRARIES
+
+    def visit(obj, depth: int) -> None:
+        if obj is None or isinstance(obj, (bool, int, str, bytes)):
+            tokens.append((type(obj).__name__, obj))
+            return
+        if isinstance(obj, (float, complex)):
+            tokens.append((type(obj).__name__, repr(obj)))  # nan == nan by repr
+            return
+        if id(obj) in seen:
+            tokens.append(("again", id(obj)))
+            return
+        if depth > _STATE_DEPTH or len(seen) >= _STATE_OBJECTS:
+            tokens.append(("deep", id(obj)))
+            objects.append(obj)
+            return
+        seen.add(id(obj))
+        objects.append(obj)
+        tokens.append((type(obj).__qualname__, id(obj)))
+        if isinstance(obj, (np.ndarray, np.generic)):
+            a = np.asarray(obj)
+            if not a.dtype.hasobject:
+                a = np.ascontiguousarray(a)
+                digest = hashlib.blake2b(memoryview(a.reshape(-1).view(np.uint8)))
+                tokens.append((a.shape, a.dtype.str, digest.digest()))
+            return
+        if isinstance(obj, (type, types.ModuleType, jax.Array)):
+            return
+        if isinstance(obj, types.FunctionType):
+            if depth > 0 and library(obj):
+                return
+            for cell in obj.__closure__ or ():
+                try:
+                    visit(cell.cell_contents, depth + 1)
+                except ValueError:  # an empty cell
+                    tokens.append("empty cell")
+            visit(obj.__defaults__, depth + 1)
+            visit(obj.__kwdefaults__, depth + 1)
+            names = _code_names(obj.__code__)
+            namespace = obj.__globals__
+            for name in names:
+                if name not in namespace:
+                    continue
+                value = namespace[name]
+                tokens.append(name)
+                if isinstance(value, types.ModuleType):
+                    attributes = vars(value)
+                    for attribute in names:
+                        if attribute in attributes:
+                            tokens.append(attribute)
+                            visit(attributes[attribute], depth + 1)
+                else:
+                    visit(value, depth + 1)
+            return
+        if isinstance(obj, types.MethodType):
+            visit(obj.__func__, depth + 1)
+            visit(obj.__self__, depth + 1)
+            return
+        if isinstance(obj, functools.partial):
+            visit(obj.func, depth + 1)
+            visit(obj.args, depth + 1)
+            visit(obj.keywords, depth + 1)
+            return
+        if isinstance(obj, (tuple, list)):
+            tokens.append(len(obj))
+            for item in obj[:_STATE_ITEMS]:
+                visit(item, depth + 1)
+            return
+        if isinstance(obj, dict):
+            items(obj, depth)
+            return
+        wrapped = getattr(obj, "__wrapped__", None) if not library(obj) else None
+        if wrapped is not None:
+            visit(wrapped, depth + 1)
+        try:
+            attributes = vars(obj)
+        except TypeError:
+            return
+        items(attributes, depth)
+
+    def items(mapping, depth: int) -> None:
+        tokens.append(len(mapping))
+        for k, v in list(mapping.items())[:_STATE_ITEMS]:
+            visit(k, depth + 1)
+            visit(v, depth + 1)
+
+    visit(fn, 0)
+    return tuple(tokens), objects
+
+
+def _code_names(code: types.CodeType) -> tuple[str, ...]:
+    names = list(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names.extend(_code_names(const))
+    return tuple(dict.fromkeys(names))
+
+
+def _run_chunk(compiled, host_in, treedef, sharding) -> list:
+    """One chunk (host numpy rows in) through `compiled`: host numpy leaves out."""
+    device_in = jax.device_put(jax.tree.unflatten(treedef, host_in), sharding)
+    device_out = compiled(device_in)
+    host_out = [np.asarray(x) for x in jax.device_get(jax.tree.leaves(device_out))]
+    del device_in, device_out  # nothing of this chunk stays on the devices
+    return host_out
+
+
+def _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n):
+    """`fn` raised at run time (an `eqx.error_if`, e.g. a solve with `throw=True`)
+    somewhere in a chunk: find the rows that raise by bisection, each test a run of
+    the same compiled program on a chunk made of some rows only (repeated to fill
+    it), and raise naming them (global indices) with the first message."""
+    chunk = host_in[0].shape[0]
+    real = min(chunk, n - start)
+
+    def raises(rows) -> bool:
+        take = np.resize(np.asarray(rows), chunk)  # the rows, repeated to fill
+        try:
+            _run_chunk(compiled, [leaf[take] for leaf in host_in], treedef, sharding)
+        except jax.errors.JaxRuntimeError:
+            return True
+        return False
+
+    def failing(rows) -> list:
+        if not raises(rows):
+            return []
+        if len(rows) == 1:
+            return list(rows)
+        half = len(rows) // 2
+        return failing(rows[:half]) + failing(rows[half:])
+
+    # The bisection's own failures are expected: keep JAX from logging each one.
+    log = logging.getLogger("jax._src.callback")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        rows = failing(list(range(real))) if real > 1 else list(range(real))
+    finally:
+        log.setLevel(level)
+    if not rows:  # no subset raises on its own: report the error as it was
+        raise error
+    named = [start + r for r in rows]
+    listed = ", ".join(map(str, named[:20])) + (
+        f", ... ({len(named)} rows)" if len(named) > 20 else ""
+    )
+    raise type(error)(
+        f"cjax.sweep: `fn` raised on input row{'s' if len(named) > 1 else ''} "
+        f"{listed} (indices into the leading axis of `inputs`, N = {n}; of rows "
+        f"{start} to {start + real - 1}, the chunk being evaluated: later rows were "
+        "not evaluated). To get "
+        "every row's answer instead, have `fn` call its solves with `throw=False` "
+        "and return their `result`: the failing rows are then "
+        "`np.flatnonzero(out.result != cjax.RESULTS.successful)`. The error raised:\n"
+        f"{error}"
+    ) from error
 
 
 def _round_up(x: int, multiple: int) -> int:
@@ -303,7 +564,11 @@ def _check_inputs(inputs):
         )
     n = next(iter(lengths.values()))
     if n == 0:
-        raise ValueError("`sweep` got no inputs: the leading axis has length 0.")
+        raise ValueError(
+            "`sweep` got no inputs: the leading axis has length 0 (there is nothing to "
+            "evaluate, and no row to learn the outputs' shapes from: skip the call for "
+            "an empty batch)."
+        )
     return leaves, list(lengths), treedef, n
 
 
