@@ -43,18 +43,25 @@ class FitResult(eqx.Module):
 
     **Attributes:**
 
-    - `params`: the fitted parameters, with the structure of `params0`. If the fit
-        stopped because the loss or its gradient became non-finite, these are the
-        last parameters at which both were finite.
+    - `params`: the fitted parameters, with the structure of `params0`: the last
+        ones evaluated. If the fit stopped because the loss or its gradient became
+        non-finite, these are the last parameters at which both were finite; if it
+        diverged (`RESULTS.diverged`), the best ones seen (lowest loss, possibly
+        `params0`); if `params0` was not finite, `params0`.
     - `losses`: the loss history, shape `(steps + 1,)`: `losses[i]` is the loss after
         `i` optimizer steps (`losses[0]` at `params0`). Entries after the fit stopped
         (converged, or non-finite) repeat the final loss.
+        With a non-finite `params0` every entry is `inf`.
     - `grad_norm`: the norm of the gradient at `params` (the 2-norm over all leaves).
     - `steps`: the number of optimizer steps taken to reach `params`.
-    - `result`: a [`constrained_jax.RESULTS`][] member: `successful`;
-        `nonfinite` (the loss, its gradient or the parameters became inf or NaN;
-        `params` are the last finite ones); `nonlinear_max_steps_reached` (a
-        tolerance `gtol` was given and not reached within `steps`).
+    - `result`: a [`constrained_jax.RESULTS`][] member: `successful` (see
+        [`constrained_jax.fit`][] for what it certifies); `invalid_input` (`params0`
+        holds NaN or inf; nothing was evaluated); `nonfinite` (the loss, its
+        gradient or the parameters became inf or NaN; `params` are the last finite
+        ones); `diverged` (the last loss is higher than the loss at `params0`, and
+        the parameters moved: the optimizer made things worse; `params` are the best
+        seen); `nonlinear_max_steps_reached` (a tolerance `gtol` was given and not
+        reached within `steps`).
     """
 
     params: PyTree[Array]
@@ -73,6 +80,11 @@ class _State(eqx.Module):
     evaluations: Int[Array, ""]  # of `params` so far; steps taken = evaluations - 1
     converged: Bool[Array, ""]
     result: RESULTS
+    first_loss: Float[Array, ""]  # the loss at `params0`
+    best_params: PyTree[Array]  # the evaluated parameters with the lowest loss
+    best_loss: Float[Array, ""]
+    best_grad: PyTree[Array]
+    best_evaluations: Int[Array, ""]
 
 
 def fit(
@@ -112,7 +124,11 @@ def fit(
     - `gtol`: optional convergence test: stop when the gradient's 2-norm (over all
         leaves of `params`) is at most `gtol`. Then not reaching it within `steps` is
         a failure, `RESULTS.nonlinear_max_steps_reached`. With `gtol=None` (default)
-        the fit runs all `steps` and succeeds unless something becomes non-finite.
+        the fit runs all `steps` and succeeds unless something becomes non-finite
+        or it diverges: `successful` then means "ran the requested steps, stayed
+        finite, and ended lower than it started", NOT "converged" (a fit whose loss
+        is still falling fast is `successful`). Pass `gtol` to have convergence
+        checked, and look at `losses` and `grad_norm`.
     - `jac`: how the gradient is computed: `"bwd"` (default), reverse mode (one
         backward pass, whatever the number of parameters); `"fwd"`, forward mode
         (`jax.jacfwd`: one forward pass per parameter, cheaper for a few parameters
@@ -132,7 +148,20 @@ def fit(
     Each step evaluates the loss and its gradient once (as `jac` says) and then
     takes the optimizer's step. If the loss, the gradient or the parameters become
     non-finite, the fit stops there with `RESULTS.nonfinite` and returns the last
-    finite parameters: a NaN is never returned silently.
+    finite parameters: a NaN is never returned silently. A `params0` with NaN or
+    inf is refused (`RESULTS.invalid_input`) before the loss is evaluated.
+
+    An optimizer that diverges while staying finite (e.g. gradient descent with a
+    learning rate above `2 / curvature`: `optax.sgd(1.5)` on `sum((p - 1)**2)`
+    takes the loss from 2 to 3e60 in 100 steps) ends with `RESULTS.diverged`:
+    the test, made once at the end, is that the last loss exceeds the loss at
+    `params0` (beyond rounding) while the parameters moved (beyond rounding, so
+    that a start at an exact minimum, where the gradient is rounding noise, is
+    not flagged). Normal training ends below its start, however noisy its
+    losses on the way (Adam's overshoots included); a fit started so near a
+    minimum that the optimizer's step size only rattles around it can end above
+    its start, and is then flagged too, honestly: `params` are then the best
+    seen. Tracking the best parameters costs one select per leaf per step.
 
     The loop runs in blocks of 100 evaluations, each one `jax.lax.scan`; between
     blocks the progress bar is updated and a converged or failed fit stops. It
@@ -299,9 +328,10 @@ def _evaluate_and_step(
         else:
             norm = _grad_norm(grad)
             converged = finite & (norm <= gtol.astype(norm.dtype))
-        keep = lambda new, old: jtu.tree_map(
-            lambda a, b: jnp.where(finite, a, b), new, old
+        keep = lambda new, old, where=finite: jtu.tree_map(
+            lambda a, b: jnp.where(where, a, b), new, old
         )
+        best = finite & (value < state.best_loss)  # best_loss starts at inf
         accepted = _State(
             candidate=state.candidate,
             opt_state=state.opt_state,
@@ -311,6 +341,11 @@ def _evaluate_and_step(
             evaluations=evaluations,
             converged=converged,
             result=RESULTS.where(finite, state.result, RESULTS.nonfinite),
+            first_loss=jnp.where(state.evaluations == 0, value, state.first_loss),
+            best_params=keep(state.candidate, state.best_params, best),
+            best_loss=jnp.where(best, value, state.best_loss),
+            best_grad=keep(grad, state.best_grad, best),
+            best_evaluations=jnp.where(best, evaluations, state.best_evaluations),
         )
 
         def update(s: _State) -> _State:
@@ -350,15 +385,25 @@ def _active(state: _State, steps) -> Bool[Array, ""]:
 def _start(optimizer, params0, loss_dtype) -> _State:
     with _optax_promotion():
         opt_state = optimizer.init(params0)
+    inf = jnp.array(jnp.inf, loss_dtype)
+    zeros = jtu.tree_map(jnp.zeros_like, params0)
     return _State(
         candidate=params0,
         opt_state=opt_state,
         params=params0,
-        loss=jnp.array(jnp.inf, loss_dtype),
-        grad=jtu.tree_map(jnp.zeros_like, params0),
+        loss=inf,
+        grad=zeros,
         evaluations=jnp.zeros((), jnp.result_type(int)),
         converged=jnp.array(False),
-        result=RESULTS.successful,
+        # A NaN or inf start is refused before the loss is evaluated.
+        result=RESULTS.where(
+            all_finite(params0), RESULTS.successful, RESULTS.invalid_input
+        ),
+        first_loss=inf,
+        best_params=params0,
+        best_loss=inf,
+        best_grad=zeros,
+        best_evaluations=jnp.zeros((), jnp.result_type(int)),
     )
 
 
@@ -371,19 +416,40 @@ def _run_block(loss, optimizer, gtol, jac, block, steps, state, args):
     return jax.lax.scan(body, state, length=block)
 
 
-def _finish(state: _State, losses, gtol) -> FitResult:
+def _diverged(state: _State, params0) -> Bool[Array, ""]:
+    """The fit ended worse than it started: the last loss exceeds the loss at
+    `params0` by more than rounding, and the parameters moved by more than rounding
+    (a start at an exact minimum, where the gradient is rounding noise, is not
+    flagged). Normal training, noisy or not, ends below its start."""
+    eps = jnp.finfo(state.loss.dtype).eps
+    rise = state.loss - state.first_loss
+    worse = rise > 8 * eps * (jnp.abs(state.first_loss) + jnp.abs(state.loss))
+    moved = jtu.tree_map(lambda a, b: a - b.astype(a.dtype), state.params, params0)
+    scale = optax.tree.norm(params0).astype(eps.dtype)
+    moved = optax.tree.norm(moved).astype(eps.dtype) > jnp.sqrt(eps) * (1 + scale)
+    return worse & moved
+
+
+def _finish(state: _State, losses, gtol, params0) -> FitResult:
     result = state.result
+    diverged = (result == RESULTS.successful) & _diverged(state, params0)
+    result = RESULTS.where(diverged, RESULTS.diverged, result)
     if gtol is not None:
         result = RESULTS.where(
             (result == RESULTS.successful) & ~state.converged,
             RESULTS.nonlinear_max_steps_reached,
             result,
         )
+    # A diverged fit returns the best parameters it saw, not where it ended.
+    pick = lambda best, last: jtu.tree_map(
+        lambda a, b: jnp.where(diverged, a, b), best, last
+    )
+    evaluations = jnp.where(diverged, state.best_evaluations, state.evaluations)
     return FitResult(
-        params=state.params,
+        params=pick(state.best_params, state.params),
         losses=losses,
-        grad_norm=_grad_norm(state.grad),
-        steps=jnp.maximum(state.evaluations - 1, 0),
+        grad_norm=_grad_norm(pick(state.best_grad, state.grad)),
+        steps=jnp.maximum(evaluations - 1, 0),
         result=result,
     )
 
@@ -393,7 +459,7 @@ def _fit_traced(loss, optimizer, gtol, jac, steps, params0, args) -> FitResult:
     state, losses = _run_block(
         loss, optimizer, gtol, jac, steps + 1, steps, state, args
     )
-    return _finish(state, losses, gtol)
+    return _finish(state, losses, gtol, params0)
 
 
 def _fit_blocks(
@@ -425,7 +491,7 @@ def _fit_blocks(
     if losses.shape[0] < steps + 1:  # stopped early: the loss stays where it stopped
         pad = jnp.full((steps + 1 - losses.shape[0],), state.loss, losses.dtype)
         losses = jnp.concatenate([losses, pad])
-    return _finish(state, losses, gtol)
+    return _finish(state, losses, gtol, params0)
 
 
 def _progress_bar(total: int, progress: bool):

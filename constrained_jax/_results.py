@@ -63,3 +63,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The time grid of a fixed-step integration is invalid: `dt0` must be "
         "positive, `t0 <= t1`, and the save times nondecreasing within [t0, t1]."
     )
+    diverged = (
+        "The fit ended with a higher loss than it started from: the optimizer "
+        "diverged (its steps are too large for the curvature of the loss; plain "
+        "gradient descent grows the loss once the learning rate exceeds 2 / the "
+        "largest curvature). Lower the learning rate, use a schedule, or an optimizer "
+        "with a line search (`optax.lbfgs()`). `params` are the best (lowest-loss) "
+        "parameters seen."
+    )
