@@ -180,7 +180,7 @@ def sweep(
     # At most one trace and one compilation per sweep; none when the same `fn` is
     # swept again with the same chunk shapes and devices and the Python values it
     # reads unchanged (JAX's caches, through one jitted function kept per `fn`).
-    traced = _chunk_traced(fn, sharding, specs)
+    traced, fn_fingerprint = _chunk_traced(fn, sharding, specs)
     out_info, out_treedef = jax.tree.flatten(traced.out_info)
     if any(jax.dtypes.issubdtype(o.dtype, jax.dtypes.extended) for o in out_info):
         raise ValueError(
@@ -198,7 +198,7 @@ def sweep(
             "length": n,
             "chunking": {"chunk_size": chunk, "chunks": n_chunks},
             "devices": _devices_fingerprint(devices),
-            "fn": _fn_fingerprint(traced.jaxpr),
+            "fn": fn_fingerprint,
             "outputs": {
                 "structure": _strip_addresses(str(out_treedef)),
                 "shapes": [list(o.shape[1:]) for o in out_info],
@@ -256,16 +256,20 @@ _PROGRAMS_KEPT = 16
 
 
 class _Program:
-    __slots__ = ("jitted", "state", "kept")
+    __slots__ = ("jitted", "fingerprint", "state", "kept")
 
-    def __init__(self, jitted, state, kept):
+    def __init__(self, jitted, fingerprint, state, kept):
         self.jitted = jitted
+        # `_fn_fingerprint` of its trace, taken when traced: a numpy constant of the
+        # jaxpr may be the user's array itself, written in place since.
+        self.fingerprint = fingerprint
         self.state = state  # what `_python_state(fn)` gave after tracing
         self.kept = kept  # the objects `state` names by id (so ids stay unique)
 
 
 def _chunk_traced(fn, sharding, specs):
-    """`jit(vmap(fn))` for `sharding`, traced for `specs`.
+    """`jit(vmap(fn))` for `sharding`, traced for `specs`, and the `_fn_fingerprint`
+    of that trace.
 
     The jitted function is kept per `(fn, sharding, specs)`, so that sweeping `fn`
     again reuses JAX's trace and compilation caches, as a second call of one
@@ -274,33 +278,33 @@ def _chunk_traced(fn, sharding, specs):
     `_python_state`) is traced again; if the new jaxpr (text and constants) differs
     from the kept one, a new program replaces it, so the sweep never returns values
     computed with the old state. Checking the state costs microseconds; a new trace
-    (tens to hundreds of milliseconds) is paid only when it changed."""
+    (tens to hundreds of milliseconds) is paid only when it changed, and the
+    fingerprint (a few percent of a compilation) only with a new trace."""
     make = lambda: jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding)
     leaves, structure = jax.tree.flatten(specs)
     key = (fn, sharding, structure, tuple((s.shape, s.dtype) for s in leaves))
     try:
         kept = _PROGRAMS.pop(key, None)
     except TypeError:  # unhashable fn: no reuse
-        return make().trace(specs)
-    state, objects = _python_state(fn) if kept is not None else (None, None)
-    if kept is not None and state == kept.state:
+        traced = make().trace(specs)
+        return traced, _fn_fingerprint(traced.jaxpr)
+    if kept is not None and _python_state(fn)[0] == kept.state:
         program, traced = kept, kept.jitted.trace(specs)
     else:
         jitted = make()
         traced = jitted.trace(specs)
-        if kept is not None:
-            # The state changed: keep the old program (and its compilation) if the
-            # computation is the same after all (e.g. a global fn does not trace).
-            old = kept.jitted.trace(specs)  # JAX's cache: the jaxpr of the old state
-            if _fn_fingerprint(old.jaxpr) == _fn_fingerprint(traced.jaxpr):
-                jitted, traced = kept.jitted, old
+        fingerprint = _fn_fingerprint(traced.jaxpr)
+        if kept is not None and fingerprint == kept.fingerprint:
+            # The state changed but not the computation (fn does not read what
+            # changed): keep the old program and its compilation.
+            jitted, traced = kept.jitted, kept.jitted.trace(specs)
         # The snapshot after tracing: a trace that mutates what it reads (a list
         # counting traces) is not a change.
-        program = _Program(jitted, *_python_state(fn))
+        program = _Program(jitted, fingerprint, *_python_state(fn))
     _PROGRAMS[key] = program
     while len(_PROGRAMS) > _PROGRAMS_KEPT:
         _PROGRAMS.popitem(last=False)
-    return traced
+    return traced, program.fingerprint
 
 
 # Python state of `fn` (see `_python_state`): packages whose functions are not
