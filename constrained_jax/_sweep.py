@@ -71,7 +71,11 @@ def sweep(
         closed-over variable reassigned, a numpy array or list written in place,
         an attribute of an object it reads): `fn` is traced again and, if the
         computation differs, compiled again, so a sweep never returns values of
-        the old state. What is watched (see `_python_state` in `_sweep.py`):
+        the old state (the trace caches of `jax.jit` / `eqx.filter_jit` functions
+        met on the way, `fn` itself or helpers it calls, are then cleared, since
+        they would hand back the old trace). Checking costs well under a
+        millisecond (plus hashing any numpy arrays `fn` closes over). What is
+        watched (see `_python_state` in `_sweep.py`):
         closure cells, defaults, the globals `fn`'s code names and the attributes
         `module.name` it reads, followed into the functions, containers and
         objects found there (not into the code of JAX and the other numerical
@@ -288,9 +292,17 @@ def _chunk_traced(fn, sharding, specs):
     except TypeError:  # unhashable fn: no reuse
         traced = make().trace(specs)
         return traced, _fn_fingerprint(traced.jaxpr)
-    if kept is not None and _python_state(fn)[0] == kept.state:
+    if kept is not None:
+        state, objects = _python_state(fn)
+    if kept is not None and state == kept.state:
         program, traced = kept, kept.jitted.trace(specs)
     else:
+        if kept is not None:
+            # `jax.jit` functions that fn calls (its own, or an `eqx.filter_jit`'s)
+            # keep traces of the old state: a new trace of fn would reuse them.
+            for obj in objects:
+                if _is_jitted(obj):
+                    obj.clear_cache()
         jitted = make()
         traced = jitted.trace(specs)
         fingerprint = _fn_fingerprint(traced.jaxpr)
@@ -347,7 +359,8 @@ def _python_state(fn) -> tuple[tuple, list]:
     strings enter by value, numpy arrays by a hash of their bytes (in-place writes
     are seen), anything else (JAX arrays, which are immutable) by identity.
     Functions of the libraries in `_LIBRARIES` are not looked into. Not seen: state
-    beyond those bounds, behind properties or `__getattr__`, or in C extensions."""
+    beyond those bounds, behind properties or `__getattr__`, or in C extensions. If
+    looking raises, the snapshot equals nothing (`fn` is traced at every sweep)."""
     tokens: list = []
     objects: list = []
     seen: set = set()
@@ -425,8 +438,8 @@ def _python_state(fn) -> tuple[tuple, list]:
         if isinstance(obj, dict):
             items(obj, depth)
             return
-        wrapped = getattr(obj, "__wrapped__", None) if not library(obj) else None
-        if wrapped is not None:
+        wrapped = getattr(obj, "__wrapped__", None)
+        if wrapped is not None and (not library(obj) or _is_jitted(obj)):
             visit(wrapped, depth + 1)
         try:
             attributes = vars(obj)
@@ -440,8 +453,18 @@ def _python_state(fn) -> tuple[tuple, list]:
             visit(k, depth + 1)
             visit(v, depth + 1)
 
-    visit(fn, 0)
+    try:
+        visit(fn, 0)
+    except Exception:  # an object that cannot be looked into: trace every time
+        return (("unreadable", object()),), []
     return tuple(tokens), objects
+
+
+def _is_jitted(obj) -> bool:
+    """A `jax.jit` function (with a trace cache of its own)."""
+    return type(obj).__name__ == "PjitFunction" and callable(
+        getattr(obj, "clear_cache", None)
+    )
 
 
 def _code_names(code: types.CodeType) -> tuple[str, ...]:
@@ -450,6 +473,9 @@ def _code_names(code: types.CodeType) -> tuple[str, ...]:
         if isinstance(const, types.CodeType):
             names.extend(_code_names(const))
     return tuple(dict.fromkeys(names))
+
+
+_BISECTION_RUNS = 256  # runs of a failed chunk to find its failing rows, at most
 
 
 def _run_chunk(compiled, host_in, treedef, sharding) -> list:
@@ -468,8 +494,10 @@ def _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n):
     it), and raise naming them (global indices) with the first message."""
     chunk = host_in[0].shape[0]
     real = min(chunk, n - start)
+    runs = [0]
 
     def raises(rows) -> bool:
+        runs[0] += 1
         take = np.resize(np.asarray(rows), chunk)  # the rows, repeated to fill
         try:
             _run_chunk(compiled, [leaf[take] for leaf in host_in], treedef, sharding)
@@ -478,7 +506,7 @@ def _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n):
         return False
 
     def failing(rows) -> list:
-        if not raises(rows):
+        if runs[0] >= _BISECTION_RUNS or not raises(rows):
             return []
         if len(rows) == 1:
             return list(rows)
@@ -499,7 +527,16 @@ def _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n):
     listed = ", ".join(map(str, named[:20])) + (
         f", ... ({len(named)} rows)" if len(named) > 20 else ""
     )
-    raise type(error)(
+    if runs[0] >= _BISECTION_RUNS:
+        listed += f" and maybe others (the search stopped after {runs[0]} runs)"
+    if len(named) == real > 1:
+        listed += " (every row of the chunk: the error may not depend on the row)"
+    try:
+        kind = type(error)
+        kind("")
+    except Exception:
+        kind = RuntimeError
+    raise kind(
         f"cjax.sweep: `fn` raised on input row{'s' if len(named) > 1 else ''} "
         f"{listed} (indices into the leading axis of `inputs`, N = {n}; of rows "
         f"{start} to {start + real - 1}, the chunk being evaluated: later rows were "

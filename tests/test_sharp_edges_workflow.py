@@ -303,3 +303,53 @@ def test_fit_zero_steps():
 def test_fit_vector_loss_is_refused():
     with pytest.raises(ValueError, match="scalar"):
         cjax.fit(lambda p, a: (p - 1.0) ** 2, jnp.zeros(2), steps=5, progress=False)
+
+
+FACTOR = 2.0
+
+
+def _scaled(x, power):
+    return FACTOR * x**power
+
+
+_jitted_helper = jax.jit(lambda x: FACTOR * x)
+
+
+class _Model:
+    def __init__(self, k):
+        self.k = k
+
+    def __call__(self, x):
+        return self.k * x
+
+
+def test_sweep_sees_changes_through_wrappers():
+    """`jax.jit` and `eqx.filter_jit` of fn (whose own trace caches are cleared),
+    `functools.partial`, a bound method, a callable object, a jitted global helper."""
+    global FACTOR
+    import functools
+
+    x = np.arange(1.0, 5.0)
+    model = _Model(3.0)
+    cases = [
+        (jax.jit(lambda x: _scaled(x, 1.0)), lambda factor, k: factor * x),
+        (eqx.filter_jit(lambda x: _scaled(x, 3.0)), lambda factor, k: factor * x**3),
+        (functools.partial(_scaled, power=2.0), lambda factor, k: factor * x**2),
+        (model.__call__, lambda factor, k: k * x),
+        (model, lambda factor, k: k * x),
+        (lambda x: _jitted_helper(x) + 1.0, lambda factor, k: factor * x + 1.0),
+    ]
+    for fn, expected in cases:
+        try:
+            np.testing.assert_array_equal(cjax.sweep(fn, x, **KW), expected(2.0, 3.0))
+            FACTOR = 7.0
+            model.k = 11.0
+            np.testing.assert_array_equal(cjax.sweep(fn, x, **KW), expected(7.0, 11.0))
+        finally:
+            FACTOR, model.k = 2.0, 3.0
+
+
+def test_sweep_error_in_every_row_says_so():
+    x = -np.arange(1.0, 4.0)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="every row of the chunk"):
+        cjax.sweep(_fails_on_marked_rows, x, **KW)
