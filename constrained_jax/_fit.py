@@ -80,7 +80,6 @@ class _State(eqx.Module):
     evaluations: Int[Array, ""]  # of `params` so far; steps taken = evaluations - 1
     converged: Bool[Array, ""]
     result: RESULTS
-    first_loss: Float[Array, ""]  # the loss at `params0`
     best_params: PyTree[Array]  # the evaluated parameters with the lowest loss
     best_loss: Float[Array, ""]
     best_grad: PyTree[Array]
@@ -341,7 +340,6 @@ def _evaluate_and_step(
             evaluations=evaluations,
             converged=converged,
             result=RESULTS.where(finite, state.result, RESULTS.nonfinite),
-            first_loss=jnp.where(state.evaluations == 0, value, state.first_loss),
             best_params=keep(state.candidate, state.best_params, best),
             best_loss=jnp.where(best, value, state.best_loss),
             best_grad=keep(grad, state.best_grad, best),
@@ -399,7 +397,6 @@ def _start(optimizer, params0, loss_dtype) -> _State:
         result=RESULTS.where(
             all_finite(params0), RESULTS.successful, RESULTS.invalid_input
         ),
-        first_loss=inf,
         best_params=params0,
         best_loss=inf,
         best_grad=zeros,
@@ -416,14 +413,14 @@ def _run_block(loss, optimizer, gtol, jac, block, steps, state, args):
     return jax.lax.scan(body, state, length=block)
 
 
-def _diverged(state: _State, params0) -> Bool[Array, ""]:
+def _diverged(state: _State, first_loss, params0) -> Bool[Array, ""]:
     """The fit ended worse than it started: the last loss exceeds the loss at
     `params0` by more than rounding, and the parameters moved by more than rounding
     (a start at an exact minimum, where the gradient is rounding noise, is not
     flagged). Normal training, noisy or not, ends below its start."""
     eps = jnp.finfo(state.loss.dtype).eps
-    rise = state.loss - state.first_loss
-    worse = rise > 8 * eps * (jnp.abs(state.first_loss) + jnp.abs(state.loss))
+    rise = state.loss - first_loss
+    worse = rise > 8 * eps * (jnp.abs(first_loss) + jnp.abs(state.loss))
     moved = jtu.tree_map(lambda a, b: a - b.astype(a.dtype), state.params, params0)
     scale = optax.tree.norm(params0).astype(eps.dtype)
     moved = optax.tree.norm(moved).astype(eps.dtype) > jnp.sqrt(eps) * (1 + scale)
@@ -432,7 +429,8 @@ def _diverged(state: _State, params0) -> Bool[Array, ""]:
 
 def _finish(state: _State, losses, gtol, params0) -> FitResult:
     result = state.result
-    diverged = (result == RESULTS.successful) & _diverged(state, params0)
+    # losses[0] is the loss at params0 (when finite; else the fit failed already).
+    diverged = (result == RESULTS.successful) & _diverged(state, losses[0], params0)
     result = RESULTS.where(diverged, RESULTS.diverged, result)
     if gtol is not None:
         result = RESULTS.where(
