@@ -5,12 +5,14 @@ sweep:
 - same `fn` after a global scalar it reads changed: the new values (traced again).
 - same `fn` after a global JAX array was reassigned / a numpy array written in place
   / a closure cell reassigned / an attribute of a closed-over object set: new values.
+- the same through `jax.jit(fn)`, `eqx.filter_jit(fn)` (their own trace caches are
+  cleared), `functools.partial`, a bound method, a callable object, a jitted helper.
 - a changed global that `fn` does not read: no new trace (the kept program serves).
 - with checkpoints: the new state is a different `fn` fingerprint (a folder written
   before the change is refused, a new folder gets the new values).
 - a run-time error (`eqx.error_if`) in some rows with throw=True: a
   `JaxRuntimeError` naming the failing global row indices; the same `fn` then sweeps
-  good inputs as before.
+  good inputs as before; an error in every row of a chunk says so.
 - `cjax.extremize(..., throw=True)` failing on one row (NaN input): names that row.
 - the throw=False pattern: `result` rows and NaN rows come back as they are,
   `np.flatnonzero(out["result"] != RESULTS.successful)` lists the failing rows.
@@ -26,6 +28,8 @@ fit:
 - gradient descent with a large but stable step (oscillating, shrinking): successful.
 - params0 holding NaN or inf: RESULTS.invalid_input, nothing evaluated.
 - steps = 0: successful, params0, one loss; with gtol not met: max steps reached.
+- without gtol, successful means "ran the steps and ended lower", not converged (3
+  steps, error still 0.512 of the start); with gtol the same run is max steps.
 - a loss returning a vector: ValueError.
 """
 
@@ -353,3 +357,16 @@ def test_sweep_error_in_every_row_says_so():
     x = -np.arange(1.0, 4.0)
     with pytest.raises(jax.errors.JaxRuntimeError, match="every row of the chunk"):
         cjax.sweep(_fails_on_marked_rows, x, **KW)
+
+
+def test_fit_successful_without_gtol_means_ran_the_steps():
+    """Three steps of rate 0.9 on curvature 2 leave the error at 0.8^3 = 0.512 of
+    the start: `successful` (ran the steps, ended lower), not converged; asking for
+    `gtol` turns the same run into `nonlinear_max_steps_reached`."""
+    kw = dict(optimizer=SGD_STABLE, steps=3, progress=False, throw=False)
+    res = cjax.fit(_bowl, jnp.zeros(2), **kw)
+    assert res.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(res.params, 1.0 - (-0.8) ** 3, rtol=1e-14)
+    np.testing.assert_allclose(res.grad_norm, 2 * np.sqrt(2) * 0.8**3, rtol=1e-14)
+    res = cjax.fit(_bowl, jnp.zeros(2), gtol=1e-8, **kw)
+    assert res.result == cjax.RESULTS.nonlinear_max_steps_reached
