@@ -46,8 +46,8 @@ class FitResult(eqx.Module):
     - `params`: the fitted parameters, with the structure of `params0`: the last
         ones evaluated. If the fit stopped because the loss or its gradient became
         non-finite, these are the last parameters at which both were finite; if it
-        diverged (`RESULTS.diverged`), the best ones seen (lowest loss, possibly
-        `params0`); if `params0` was not finite, `params0`.
+        diverged (`RESULTS.diverged`), `params0` (the better of the start and the
+        end); if `params0` was not finite, `params0`.
     - `losses`: the loss history, shape `(steps + 1,)`: `losses[i]` is the loss after
         `i` optimizer steps (`losses[0]` at `params0`). Entries after the fit stopped
         (converged, or non-finite) repeat the final loss.
@@ -59,9 +59,9 @@ class FitResult(eqx.Module):
         holds NaN or inf; nothing was evaluated); `nonfinite` (the loss, its
         gradient or the parameters became inf or NaN; `params` are the last finite
         ones); `diverged` (the last loss is higher than the loss at `params0`, and
-        the parameters moved: the optimizer made things worse; `params` are the best
-        seen); `nonlinear_max_steps_reached` (a tolerance `gtol` was given and not
-        reached within `steps`).
+        the parameters moved: the optimizer made things worse; `params` are
+        `params0`, `steps` 0); `nonlinear_max_steps_reached` (a tolerance `gtol`
+        was given and not reached within `steps`).
     """
 
     params: PyTree[Array]
@@ -80,10 +80,7 @@ class _State(eqx.Module):
     evaluations: Int[Array, ""]  # of `params` so far; steps taken = evaluations - 1
     converged: Bool[Array, ""]
     result: RESULTS
-    best_params: PyTree[Array]  # the evaluated parameters with the lowest loss
-    best_loss: Float[Array, ""]
-    best_grad: PyTree[Array]
-    best_evaluations: Int[Array, ""]
+    first_grad_norm: Float[Array, ""]  # at `params0` (returned if diverged)
 
 
 def fit(
@@ -159,8 +156,10 @@ def fit(
     not flagged). Normal training ends below its start, however noisy its
     losses on the way (Adam's overshoots included); a fit started so near a
     minimum that the optimizer's step size only rattles around it can end above
-    its start, and is then flagged too, honestly: `params` are then the best
-    seen. Tracking the best parameters costs one select per leaf per step.
+    its start, and is then flagged too, honestly. A diverged fit returns
+    `params0` (with its gradient norm and `steps=0`): the better of its start and
+    its end. It does not return the best parameters seen on the way, which would
+    cost a copy of the parameters at every step; `losses` shows where they were.
 
     The loop runs in blocks of 100 evaluations, each one `jax.lax.scan`; between
     blocks the progress bar is updated and a converged or failed fit stops. It
@@ -322,15 +321,24 @@ def _evaluate_and_step(
         value = value.astype(state.loss.dtype)
         finite = all_finite((state.candidate, value, grad))
         evaluations = state.evaluations + finite.astype(state.evaluations.dtype)
+        first = state.evaluations == 0
         if gtol is None:
             converged = jnp.array(False)
+            # Computed at the first evaluation only (a branch, not every step).
+            first_grad_norm = jax.lax.cond(
+                first,
+                lambda: _grad_norm(grad).astype(state.first_grad_norm.dtype),
+                lambda: state.first_grad_norm,
+            )
         else:
             norm = _grad_norm(grad)
             converged = finite & (norm <= gtol.astype(norm.dtype))
-        keep = lambda new, old, where=finite: jtu.tree_map(
-            lambda a, b: jnp.where(where, a, b), new, old
+            first_grad_norm = jnp.where(
+                first, norm.astype(state.first_grad_norm.dtype), state.first_grad_norm
+            )
+        keep = lambda new, old: jtu.tree_map(
+            lambda a, b: jnp.where(finite, a, b), new, old
         )
-        best = finite & (value < state.best_loss)  # best_loss starts at inf
         accepted = _State(
             candidate=state.candidate,
             opt_state=state.opt_state,
@@ -340,10 +348,7 @@ def _evaluate_and_step(
             evaluations=evaluations,
             converged=converged,
             result=RESULTS.where(finite, state.result, RESULTS.nonfinite),
-            best_params=keep(state.candidate, state.best_params, best),
-            best_loss=jnp.where(best, value, state.best_loss),
-            best_grad=keep(grad, state.best_grad, best),
-            best_evaluations=jnp.where(best, evaluations, state.best_evaluations),
+            first_grad_norm=first_grad_norm,
         )
 
         def update(s: _State) -> _State:
@@ -397,10 +402,7 @@ def _start(optimizer, params0, loss_dtype) -> _State:
         result=RESULTS.where(
             all_finite(params0), RESULTS.successful, RESULTS.invalid_input
         ),
-        best_params=params0,
-        best_loss=inf,
-        best_grad=zeros,
-        best_evaluations=jnp.zeros((), jnp.result_type(int)),
+        first_grad_norm=jnp.array(jnp.inf, _grad_norm(zeros).dtype),  # set at 1st
     )
 
 
@@ -427,6 +429,7 @@ def _diverged(state: _State, first_loss, params0) -> Bool[Array, ""]:
     return worse & moved
 
 
+@eqx.filter_jit
 def _finish(state: _State, losses, gtol, params0) -> FitResult:
     result = state.result
     # losses[0] is the loss at params0 (when finite; else the fit failed already).
@@ -438,16 +441,20 @@ def _finish(state: _State, losses, gtol, params0) -> FitResult:
             RESULTS.nonlinear_max_steps_reached,
             result,
         )
-    # A diverged fit returns the best parameters it saw, not where it ended.
-    pick = lambda best, last: jtu.tree_map(
-        lambda a, b: jnp.where(diverged, a, b), best, last
+    # A diverged fit returns `params0`, the better of its start and its end (keeping
+    # the best parameters seen would cost a copy of them at every step).
+    params = jtu.tree_map(
+        lambda a, b: jnp.where(diverged, a.astype(b.dtype), b), params0, state.params
     )
-    evaluations = jnp.where(diverged, state.best_evaluations, state.evaluations)
+    grad_norm = _grad_norm(state.grad)
+    grad_norm = jnp.where(
+        diverged, state.first_grad_norm.astype(grad_norm.dtype), grad_norm
+    )
     return FitResult(
-        params=pick(state.best_params, state.params),
+        params=params,
         losses=losses,
-        grad_norm=_grad_norm(pick(state.best_grad, state.grad)),
-        steps=jnp.maximum(evaluations - 1, 0),
+        grad_norm=grad_norm,
+        steps=jnp.where(diverged, 0, jnp.maximum(state.evaluations - 1, 0)),
         result=result,
     )
 

@@ -68,6 +68,5 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "diverged (its steps are too large for the curvature of the loss; plain "
         "gradient descent grows the loss once the learning rate exceeds 2 / the "
         "largest curvature). Lower the learning rate, use a schedule, or an optimizer "
-        "with a line search (`optax.lbfgs()`). `params` are the best (lowest-loss) "
-        "parameters seen."
+        "with a line search (`optax.lbfgs()`). The fit returns `params0`."
     )

@@ -21,7 +21,7 @@ sweep:
 
 fit:
 - `optax.sgd(1.5)` on `sum((p - 1)^2)` (loss 2 -> 3e60): RESULTS.diverged, the best
-  params (params0), raises with throw=True.
+  params0 back (steps 0, its gradient norm), raises with throw=True.
 - the same under `jax.vmap`: only the member whose step is too large diverges.
 - Adam on a noisy least-squares line: successful, the normal equations' solution.
 - Adam started at the least-squares solution, and at an exact minimum: successful.
@@ -209,7 +209,7 @@ def test_fit_diverging_but_finite_is_refused():
     assert res.result == cjax.RESULTS.diverged
     # By hand: the error p - 1 is multiplied by 1 - 2 * 1.5 = -2 per step.
     np.testing.assert_allclose(res.losses[-1], 2 * 4.0**100, rtol=1e-12)
-    # The best parameters seen are the start (every step made things worse).
+    # params0 comes back (here also the best seen: every step made things worse).
     np.testing.assert_array_equal(res.params, p0)
     assert res.steps == 0
     np.testing.assert_allclose(res.grad_norm, 2 * np.sqrt(2), rtol=1e-14)
