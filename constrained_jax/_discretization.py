@@ -575,8 +575,9 @@ def _bell_polynomials(order: int, inner: list) -> list[list]:
             total = 0.0
             for i in range(1, n - k + 2):
                 if bell[n - i][k - 1] is not None:
-                    total = total + math.comb(n - 1, i - 1) * inner[i - 1] * (
-                        bell[n - i][k - 1]
+                    total = (
+                        total
+                        + math.comb(n - 1, i - 1) * inner[i - 1] * (bell[n - i][k - 1])
                     )
             bell[n][k] = total
     return bell
@@ -726,7 +727,9 @@ class Graded(AbstractDiscretization):
         width = xr - xl
 
         def u_of_x(x_):
-            r = jnp.clip((x_ - xl) / width, 0.0, 1.0)
+            r = (x_ - xl) / width
+            # (Not jnp.clip: its derivative at the ends is 1/2, a tie of min/max.)
+            r = jnp.where(r < 0, 0.0, jnp.where(r > 1, 1.0, r))
             return xl + width * self._phi_inverse(r)
 
         u = u_of_x(x)
