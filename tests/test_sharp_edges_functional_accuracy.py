@@ -365,3 +365,18 @@ def test_graded_structure_errors():
         cjax.Graded(cjax.Chebyshev(8))
     with pytest.raises(ValueError, match="not another"):
         cjax.Graded(cjax.Graded(cjax.Chebyshev(8), left=2), left=2)
+
+
+def test_graded_composes_with_jit_grad_vmap():
+    """`L = a sqrt(x) y'^2`: `F* = a/2` for every `a`, so `dF*/da = 1/2`."""
+    fun = cjax.Functional(
+        lambda y, yp, x, a: a * _sqrt_weight(y, yp, x, None), (0.0, 1.0), (0.0, 1.0)
+    )
+    disc = cjax.Graded(cjax.Chebyshev(8), left=2)
+
+    def value(a):
+        return cjax.solve_functional(fun, a, discretization=disc).value
+
+    np.testing.assert_allclose(jax.jit(jax.grad(value))(2.0), 0.5, rtol=1e-10)
+    values = jax.vmap(value)(jnp.array([1.0, 3.0]))
+    np.testing.assert_allclose(values, [0.5, 1.5], rtol=1e-12)
