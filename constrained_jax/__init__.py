@@ -20,6 +20,7 @@ from ._constraints import (
 from ._discretization import (
     AbstractDiscretization as AbstractDiscretization,
     Chebyshev as Chebyshev,
+    Graded as Graded,
     PiecewiseLinear as PiecewiseLinear,
 )
 from ._extremize import (

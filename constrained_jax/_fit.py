@@ -46,7 +46,7 @@ class FitResult(eqx.Module):
     - `params`: the fitted parameters, with the structure of `params0`: the last
         ones evaluated. If the fit stopped because the loss or its gradient became
         non-finite, these are the last parameters at which both were finite; if it
-        diverged (`RESULTS.diverged`), `params0` (the better of the start and the
+        diverged (`RESULTS.fit_diverged`), `params0` (the better of the start and the
         end); if `params0` was not finite, `params0`.
     - `losses`: the loss history, shape `(steps + 1,)`: `losses[i]` is the loss after
         `i` optimizer steps (`losses[0]` at `params0`). Entries after the fit stopped
@@ -58,7 +58,7 @@ class FitResult(eqx.Module):
         [`constrained_jax.fit`][] for what it certifies); `invalid_input` (`params0`
         holds NaN or inf; nothing was evaluated); `nonfinite` (the loss, its
         gradient or the parameters became inf or NaN; `params` are the last finite
-        ones); `diverged` (the last loss is higher than the loss at `params0`, and
+        ones); `fit_diverged` (the last loss is higher than the loss at `params0`, and
         the parameters moved: the optimizer made things worse; `params` are
         `params0`, `steps` 0); `nonlinear_max_steps_reached` (a tolerance `gtol`
         was given and not reached within `steps`).
@@ -149,7 +149,7 @@ def fit(
 
     An optimizer that diverges while staying finite (e.g. gradient descent with a
     learning rate above `2 / curvature`: `optax.sgd(1.5)` on `sum((p - 1)**2)`
-    takes the loss from 2 to 3e60 in 100 steps) ends with `RESULTS.diverged`:
+    takes the loss from 2 to 3e60 in 100 steps) ends with `RESULTS.fit_diverged`:
     the test, made once at the end, is that the last loss exceeds the loss at
     `params0` (beyond rounding) while the parameters moved (beyond rounding, so
     that a start at an exact minimum, where the gradient is rounding noise, is
@@ -434,7 +434,7 @@ def _finish(state: _State, losses, gtol, params0) -> FitResult:
     result = state.result
     # losses[0] is the loss at params0 (when finite; else the fit failed already).
     diverged = (result == RESULTS.successful) & _diverged(state, losses[0], params0)
-    result = RESULTS.where(diverged, RESULTS.diverged, result)
+    result = RESULTS.where(diverged, RESULTS.fit_diverged, result)
     if gtol is not None:
         result = RESULTS.where(
             (result == RESULTS.successful) & ~state.converged,

@@ -271,7 +271,10 @@ class FunctionalSolution(eqx.Module):
     - `value`: `F[y] = int L dx` (without the constraint terms).
     - `result`: a [`constrained_jax.RESULTS`][] member.
     - `stats`: `num_steps`, `max_steps`, `kkt_residual` (root mean square of the
-        discrete KKT residual).
+        discrete KKT residual), `error_estimate` (the discretization's a-posteriori
+        estimate of `max_x |y_h(x) - y(x)|`, see its `error_estimate`; not
+        differentiated) and `error_tolerance` (`atol + rtol * max |y|`, which it
+        must not exceed for `result` to be `successful`).
 
     Call it, `sol(x)`, for the interpolant at any `x` in `[xL, xR]` (scalar or
     array); `sol.derivative(x, order)` for its derivatives.
@@ -379,6 +382,8 @@ def solve_functional(
     solver: AbstractKKTSolver | None = None,
     y0: Callable | ArrayLike | None = None,
     max_steps: int = 256,
+    rtol: ArrayLike | None = None,
+    atol: ArrayLike | None = None,
     throw: bool = True,
 ) -> FunctionalSolution:
     """Extremize a [`constrained_jax.Functional`][] by the direct method.
@@ -413,6 +418,20 @@ def solve_functional(
         or the values at the nodes, shape `(N,)` or `(N, n)`; by default the straight
         line between the end values. Newton's method finds the extremal nearest to it.
     - `max_steps`: the most Newton steps.
+    - `rtol`, `atol`: the tolerance on the discretization error. The solution is
+        `successful` only if the discretization's a-posteriori error estimate
+        (`stats["error_estimate"]`, an estimate of `max_x |y_h(x) - y(x)|`) is at
+        most `atol + rtol * max |y|`; otherwise `result` is
+        `RESULTS.discretization_error` (more nodes, or a
+        [`constrained_jax.Graded`][] grid at a singular end). By default
+        `atol = 0` and `rtol = discretization.default_rtol`, a tolerance that falls
+        with the number of nodes at the discretization's a-priori rate
+        (`10^(-(N-4)/8)` for `Chebyshev(N)`, `(10/(N-1))^2` for
+        `PiecewiseLinear(N)`, both floored at `1e-10`): it refuses a solution that
+        the grid does not resolve at all (a singular end exploited by the
+        quadrature, a boundary layer thinner than the mesh) without refusing a
+        convergence study at few nodes. Ask for the accuracy you need. Traced:
+        changing them never recompiles.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:**
@@ -434,13 +453,40 @@ def solve_functional(
         # compile the whole solve again. Values at the nodes are traced.
         nodes = discretization.nodes(functional.interval)
         y0 = jax.vmap(lambda x: jnp.asarray(y0(x)))(nodes)
+    tolerance = _error_tolerance(discretization, rtol, atol)
     return _solve_functional(
-        functional, args, discretization, solver, y0, max_steps, throw
+        functional, args, discretization, solver, y0, max_steps, throw, tolerance
     )
 
 
+def _error_tolerance(discretization, rtol, atol):
+    """`(rtol, atol)` as float64 NumPy/JAX scalars; defaults from the discretization."""
+    if rtol is None:
+        rtol = (
+            discretization.default_rtol
+            if isinstance(discretization, AbstractDiscretization)
+            else 0.0
+        )
+    if atol is None:
+        atol = 0.0
+    out = []
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        tol = jnp.asarray(tol)
+        real = jnp.issubdtype(tol.dtype, jnp.floating) or jnp.issubdtype(
+            tol.dtype, jnp.integer
+        )
+        if tol.shape != () or not real:
+            raise ValueError(f"`{name}` must be a real scalar, got {tol!r}.")
+        if not isinstance(tol, jax.core.Tracer) and not bool(tol >= 0):
+            raise ValueError(f"`{name}` must be >= 0 (and not NaN), got {tol}.")
+        out.append(tol)
+    return tuple(out)
+
+
 @eqx.filter_jit
-def _solve_functional(functional, args, discretization, solver, y0, max_steps, throw):
+def _solve_functional(
+    functional, args, discretization, solver, y0, max_steps, throw, tolerance
+):
     if not isinstance(functional, Functional):
         raise ValueError(
             "`functional` must be a `cjax.Functional`, got "
@@ -568,10 +614,23 @@ def _solve_functional(functional, args, discretization, solver, y0, max_steps, t
 
     zs = jax.lax.stop_gradient(z)
     residual = kkt_residual(objective, constraints, zs, full_args, num_unknowns)
+    # The a-posteriori error estimate (a diagnostic: not differentiated).
+    values_s = jax.lax.stop_gradient(values)
+    estimate = discretization.error_estimate(values_s, functional.interval)
+    rtol, atol = (jnp.asarray(t, dtype) for t in tolerance)
+    bound = atol + rtol * jnp.max(jnp.abs(values_s))
+    resolved = estimate <= bound
+    result = RESULTS.where(
+        (result == RESULTS.successful) & jnp.logical_not(resolved),
+        RESULTS.discretization_error,
+        result,
+    )
     stats = {
         **stats,
         "max_steps": max_steps,
         "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
+        "error_estimate": estimate,
+        "error_tolerance": bound,
     }
     if m > 0:
         g_shape = jax.eval_shape(functional.holonomic, zero, nodes[0], args).shape

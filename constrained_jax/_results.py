@@ -63,10 +63,20 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The time grid of a fixed-step integration is invalid: `dt0` must be "
         "positive, `t0 <= t1`, and the save times nondecreasing within [t0, t1]."
     )
-    diverged = (
+    fit_diverged = (
         "The fit ended with a higher loss than it started from: the optimizer "
         "diverged (its steps are too large for the curvature of the loss; plain "
         "gradient descent grows the loss once the learning rate exceeds 2 / the "
         "largest curvature). Lower the learning rate, use a schedule, or an optimizer "
         "with a line search (`optax.lbfgs()`). The fit returns `params0`."
+    )
+    discretization_error = (
+        "The discretization does not resolve the solution to the requested "
+        "tolerance: its a-posteriori error estimate (`sol.stats['error_estimate']`) "
+        "exceeds `atol + rtol * max|y|` (`sol.stats['error_tolerance']`). Use more "
+        "nodes; if the solution or the integrand is singular at an end (a vertical "
+        "tangent, `1/sqrt(y)` where `y = 0`), grade the grid there with "
+        "`cjax.Graded(discretization, left=p)` (p = 3 for a cycloid's cusp, 2 for "
+        "`sqrt(x - xL)`); for a boundary layer use `cjax.PiecewiseLinear` with more "
+        "nodes or a `Graded` grid at that end; or pass a looser `rtol`/`atol`."
     )

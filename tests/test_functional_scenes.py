@@ -62,11 +62,14 @@ def test_dido_semicircle_vertical_tangents():
     evaluated at the ends, so the solvers converge; the mesh's discrete problem is
     exact for polygons (area by the trapezoid rule, length of each segment), so its
     optimum is a real curve of length C and cannot exceed the true maximum pi/2:
-    no quadrature error to exploit."""
+    no quadrature error to exploit. But neither resolves the curve near the ends
+    (pointwise error ~3e-2, the interpolant of sqrt(1 - x^2)): the a-posteriori
+    estimate refuses both at the default tolerance (the remedy, a `Graded` grid, is
+    in test_sharp_edges_functional_accuracy.py)."""
     length = math.pi
     ref = dido.closed_form(1.0, length)
     mesh = _DIDO_MESH(jnp.asarray(length))
-    assert mesh.result == cjax.RESULTS.successful
+    assert mesh.result == cjax.RESULTS.discretization_error
     assert float(mesh.value) <= ref["value"]
     assert ref["value"] - float(mesh.value) < 1e-3 * ref["value"]
     # The polygon's length is C (the constraint is exact for polygons).
@@ -75,7 +78,7 @@ def test_dido_semicircle_vertical_tangents():
     np.testing.assert_allclose(np.sum(np.hypot(np.diff(xs), np.diff(ys))), length)
     np.testing.assert_allclose(mesh.multipliers.integral[0], -1.0, rtol=1e-2)
     spectral = _DIDO_SPECTRAL(jnp.asarray(length))
-    assert spectral.result == cjax.RESULTS.successful
+    assert spectral.result == cjax.RESULTS.discretization_error
     assert abs(float(spectral.value) - ref["value"]) < 1e-3 * ref["value"]
     assert bool(jnp.all(jnp.isfinite(spectral.y)))
 

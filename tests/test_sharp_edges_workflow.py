@@ -20,7 +20,7 @@ sweep:
   each leaf and its length.
 
 fit:
-- `optax.sgd(1.5)` on `sum((p - 1)^2)` (loss 2 -> 3e60): RESULTS.diverged, the best
+- `optax.sgd(1.5)` on `sum((p - 1)^2)` (loss 2 -> 3e60): RESULTS.fit_diverged, the best
   params0 back (steps 0, its gradient norm), raises with throw=True.
 - the same under `jax.vmap`: only the member whose step is too large diverges.
 - Adam on a noisy least-squares line: successful, the normal equations' solution.
@@ -206,7 +206,7 @@ def test_fit_diverging_but_finite_is_refused():
     res = cjax.fit(
         _bowl, p0, optimizer=SGD_TOO_LARGE, steps=100, progress=False, throw=False
     )
-    assert res.result == cjax.RESULTS.diverged
+    assert res.result == cjax.RESULTS.fit_diverged
     # By hand: the error p - 1 is multiplied by 1 - 2 * 1.5 = -2 per step.
     np.testing.assert_allclose(res.losses[-1], 2 * 4.0**100, rtol=1e-12)
     # params0 comes back (here also the best seen: every step made things worse).
@@ -229,7 +229,7 @@ def test_fit_divergence_under_vmap_is_per_member():
             throw=False,
         )
     )(curvature)
-    np.testing.assert_array_equal(res.result == cjax.RESULTS.diverged, [True, False])
+    np.testing.assert_array_equal(res.result == cjax.RESULTS.fit_diverged, [True, False])
     np.testing.assert_array_equal(res.result == cjax.RESULTS.successful, [False, True])
     np.testing.assert_array_equal(res.params[0], np.zeros(2))
     np.testing.assert_allclose(res.params[1], 1.0 - 0.7**60, rtol=1e-12)
