@@ -458,8 +458,11 @@ class Newton(AbstractKKTSolver):
                     ),
                 ),
             )
-            result = RESULTS.where(finite, result, RESULTS.nonfinite)
             moved = converged | (lin_ok & ls_ok)
+            # (A step that is not taken keeps the status that says why.)
+            result = RESULTS.where(
+                moved & jnp.invert(finite), RESULTS.nonfinite, result
+            )
             z_new = jnp.where(moved & finite, z_new, z)
             done = converged | (result != RESULTS.successful)
             return z_new, step + 1, result, done
