@@ -264,8 +264,11 @@ def extremize(
 
     Differentiable with respect to `args` (and to arrays `F`, `G` close over) by the
     implicit function theorem on the KKT system: the backward pass costs one more
-    linear solve with the KKT matrix, however many Newton steps were taken. Composes
-    with `jax.jit` and `jax.vmap`.
+    linear solve with the KKT matrix, however many Newton steps were taken. The
+    derivative of a failed solve (`result` not successful, or that linear solve
+    failing) is NaN, never an error, also with `throw=False` inside `jax.grad`: an
+    outer loop such as [`constrained_jax.fit`][] then stops with `RESULTS.nonfinite`.
+    Composes with `jax.jit` and `jax.vmap`.
 
     !!! note
 
