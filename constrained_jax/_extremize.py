@@ -13,10 +13,10 @@ import jax.flatten_util as jfu
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
-import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
+from ._implicit import implicit_jvp, nan_tangent_where
 from ._kkt import (
     AbstractKKTSolver,
     constraint_jacobian,
@@ -27,6 +27,7 @@ from ._kkt import (
     reduced_hessian_extremes,
     tangent_projector,
 )
+from ._linalg import dense_factor, dense_solve
 from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
 from ._results import RESULTS
 
@@ -49,6 +50,10 @@ class EXTREMUM(eqx.Enumeration):
         "isolated: as many independent constraints as unknowns, so the feasible set is "
         "a single point near x and there is no tangent space to test"
     )
+    unknown = (
+        "unknown: the solve did not succeed (`result` is not successful), so `x` is "
+        "not a stationary point and has no kind"
+    )
 
 
 class Extremum(eqx.Module):
@@ -61,9 +66,20 @@ class Extremum(eqx.Module):
         `grad F + sum_j lambda_j grad G_j = 0`.
     - `value`: `F(x)`. By the envelope theorem its derivative with respect to a
         parameter `p` is `dF/dp + lambda . dG/dp`.
-    - `kind`: an [`constrained_jax.EXTREMUM`][] member.
+    - `kind`: an [`constrained_jax.EXTREMUM`][] member; `EXTREMUM.unknown` whenever
+        `result` is not successful (the point where a failed solve stopped is not a
+        stationary point, so it is neither a minimum nor a maximum).
     - `result`: a [`constrained_jax.RESULTS`][] member; `RESULTS.successful` if the
-        solve converged.
+        solve converged. The failures that name their cause:
+        `invalid_input` (NaN or inf in `x0`, `multipliers0` or `args`),
+        `nonfinite_objective` (`F`, `G` or their derivatives NaN or inf at `x0`
+        or where the solver stopped), `singular_kkt` (the Hessian of `F*` is
+        singular on the tangent space: no isolated stationary point there),
+        `redundant_constraints` (dependent constraints, or a constraint gradient that
+        vanishes where the constraint holds, e.g. `G = g(x)**2`),
+        `infeasible_constraints` (the iterates approach a stationary point of `|G|^2`
+        with `G != 0`), `line_search_failed`, `linear_solve_failed` (an iterative
+        linear solver did not converge), `nonlinear_max_steps_reached`.
     - `stats`: `num_steps`, `max_steps`, the extreme eigenvalues of the reduced
         Hessian (`reduced_hessian_eigenvalues`, `[min, max]`) and the final KKT
         residual (`kkt_residual`, root mean square).
@@ -75,7 +91,28 @@ class Extremum(eqx.Module):
         exactly (to round-off) when `n - k <= 64`, as extreme Ritz values otherwise.
         An eigenvalue counts as zero when `|mu| <= sqrt(eps) max(1, |mu_min|,
         |mu_max|)`, an absolute floor for tiny Hessians and relative otherwise. It is
-        meaningful only when `result` is successful.
+        meaningful only when `result` is successful, and is `EXTREMUM.unknown`
+        otherwise (`stats["reduced_hessian_eigenvalues"]` still holds the eigenvalues
+        at the point where the solve stopped).
+
+    !!! note
+
+        Which constraint failure is reported is decided at the point where Newton
+        stopped, `x`, from the constraint values `G`, the Jacobian `J` and the
+        Gauss-Newton correction `dx = -J^T (J J^T + mu I)^-1 G` that the linearised
+        constraints predict (`mu = 1000 k eps max|J J^T|`, a regularisation far
+        below any meaningful singular value). When the KKT matrix is singular because
+        `J` lost rank (`J J^T` singular, or a singular KKT matrix with a nondegenerate
+        reduced Hessian, which leaves only `J` to blame), the constraints are
+        `redundant_constraints` when `|dx| <= L / 10` (the constraint surface is
+        within reach: `G = 0` holds there but its gradient vanishes or is dependent)
+        and `infeasible_constraints` otherwise, or when the linearised constraints
+        are inconsistent (the part of `G` along the null space of `J^T` is not
+        zero). `L = max(|x|, |x0|, |x - x0|)` is the length scale of the problem.
+        A line search that fails where `|dx| > L` is reported as
+        `infeasible_constraints` too. These tests are heuristics, and a near-miss
+        (constraints that almost hold) can be reported as redundant rather than
+        infeasible; either way the solve is not successful.
     """
 
     x: X
@@ -139,6 +176,39 @@ def _check_structure(objective, constraints, x_flat, args, multipliers0):
     return n, k
 
 
+def _value_and_jacobian(constraints, x, args):
+    """`G(x)` and `J = dG/dx` (one forward pass, one reverse pass per constraint)."""
+    g, vjp = jax.vjp(lambda x_: constraints(x_, args), x)
+    (jac,) = jax.vmap(vjp)(jnp.eye(g.shape[0], dtype=g.dtype))
+    return g, jac
+
+
+def _constraint_distance(g, jac):
+    """`(distance, inconsistent)` of the linearised constraints `G + J dx = 0`.
+
+    `distance = |dx|` for the Gauss-Newton correction `dx = -J^T (J J^T + mu I)^-1 G`
+    (`mu = 1000 k eps max|J J^T|`, far below any meaningful singular value): the
+    distance to the constraint surface that the linearisation predicts.
+    `inconsistent`: more than half of `G` lies along directions in which `J` has no
+    rank (to that `mu`), so that no step of any size satisfies the linearised
+    constraints (e.g. two parallel constraints with different values, or `J = 0`
+    with `G != 0`).
+    """
+    k = g.shape[0]
+    dtype = g.dtype
+    gram = jac @ jac.T
+    mu = 1000 * k * jnp.finfo(dtype).eps * jnp.max(jnp.abs(gram))
+    mu = mu + jnp.finfo(dtype).tiny
+    factors = dense_factor(gram + mu * jnp.eye(k, dtype=dtype), unroll_max=12)
+    y = dense_solve(factors, g, unroll_max=12)
+    distance = jnp.linalg.norm(jac.T @ y)
+    left = jnp.linalg.norm(g - gram @ y)
+    # NaN (from J = 0, G != 0: y overflows) counts as inconsistent.
+    inconsistent = jnp.invert(left <= 0.5 * jnp.linalg.norm(g))
+    distance = jnp.where(jnp.isfinite(distance), distance, jnp.inf)
+    return distance, inconsistent
+
+
 def _primal(inputs):
     objective, constraints, solver, z0, args, n, max_steps, start_ok = inputs
     residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
@@ -194,8 +264,11 @@ def extremize(
 
     Differentiable with respect to `args` (and to arrays `F`, `G` close over) by the
     implicit function theorem on the KKT system: the backward pass costs one more
-    linear solve with the KKT matrix, however many Newton steps were taken. Composes
-    with `jax.jit` and `jax.vmap`.
+    linear solve with the KKT matrix, however many Newton steps were taken. The
+    derivative of a failed solve (`result` not successful, or that linear solve
+    failing) is NaN, never an error, also with `throw=False` inside `jax.grad`: an
+    outer loop such as [`constrained_jax.fit`][] then stops with `RESULTS.nonfinite`.
+    Composes with `jax.jit` and `jax.vmap`.
 
     !!! note
 
@@ -256,13 +329,19 @@ def _extremize(
     start_ok = all_finite((x_flat, args, multipliers0))
     x_safe = jnp.where(start_ok, x_flat, 0.0)
     if k == 0:
+        f0 = objective_flat(x_safe, args)
         lam0 = jnp.zeros((0,), dtype)
-    elif multipliers0 is None:
-        jac0 = constraint_jacobian(constraints_flat, x_safe, args)
-        grad0 = jax.grad(objective_flat)(x_safe, args)
-        lam0 = least_squares_multipliers(grad0, jac0, gram_factors(jac0))
     else:
-        lam0 = jnp.asarray(multipliers0, dtype)
+        g0, jac0 = _value_and_jacobian(constraints_flat, x_safe, args)
+        if multipliers0 is None:
+            f0, grad0 = jax.value_and_grad(objective_flat)(x_safe, args)
+            lam0 = least_squares_multipliers(grad0, jac0, gram_factors(jac0))
+        else:
+            f0 = objective_flat(x_safe, args)
+            lam0 = jnp.asarray(multipliers0, dtype)
+    # F(x0) itself (Newton uses only its derivatives, whose finiteness the first
+    # step checks): NaN there means x0 is outside the domain of F.
+    start_defined = jnp.isfinite(f0)
     z0 = jax.lax.stop_gradient(jnp.concatenate([x_flat, lam0]))
 
     inputs = (
@@ -273,32 +352,25 @@ def _extremize(
         args,
         n,
         max_steps,
-        start_ok,
+        start_ok & start_defined,
     )
-    z, (result, stats) = optx.internal.implicit_jvp(
+    z, (result, stats) = implicit_jvp(
         _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
     )
-    x, lam = z[:n], z[n:]
-    value = objective_flat(x, args)
+    result = RESULTS.where(
+        start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, result
+    )
 
     # Diagnostics: nondifferentiable.
-    xs, lams = jax.lax.stop_gradient((x, lam))
-    residual = kkt_residual(
-        objective_flat, constraints_flat, jnp.concatenate([xs, lams]), args, n
-    )
+    zs = jax.lax.stop_gradient(z)
+    xs, lams = zs[:n], zs[n:]
+    residual = kkt_residual(objective_flat, constraints_flat, zs, args, n)
     if k == 0:
         project = lambda v: v
     else:
         jac = constraint_jacobian(constraints_flat, xs, args)
         factors = gram_factors(jac)
         project = tangent_projector(jac, factors)
-        redundant = factors[2]
-        result = RESULTS.where(
-            redundant
-            & ((result == RESULTS.successful) | (result == RESULTS.singular_kkt)),
-            RESULTS.redundant_constraints,
-            result,
-        )
 
     def grad_star(x_):
         """grad_x F*(x, lambda) at fixed lambda: the first n KKT residuals."""
@@ -308,6 +380,55 @@ def _extremize(
     hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
     extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
     kind = _classify(extremes, n, k, dtype)
+
+    if k > 0:
+        # A failure caused by the constraints (see the notes of `Extremum`).
+        distance, inconsistent = _constraint_distance(residual[n:], jac)
+        distance0, _ = _constraint_distance(g0, jac0)
+        scale = jnp.maximum(
+            jnp.maximum(jnp.linalg.norm(xs), jnp.linalg.norm(x_flat)),
+            jnp.linalg.norm(xs - x_flat),
+        )
+        singular = result == RESULTS.singular_kkt
+        nondegenerate = (
+            (kind == EXTREMUM.minimum)
+            | (kind == EXTREMUM.maximum)
+            | (kind == EXTREMUM.saddle)
+            | (kind == EXTREMUM.isolated)
+        )
+        jacobian_to_blame = factors[2] | (singular & nondegenerate)
+        # The surface receded while Newton moved towards a rank-deficient J.
+        receded = (distance > 0.1 * scale) & (distance > distance0)
+        result = RESULTS.where(
+            jacobian_to_blame & (singular | (result == RESULTS.successful)),
+            RESULTS.where(
+                inconsistent | receded,
+                RESULTS.infeasible_constraints,
+                RESULTS.redundant_constraints,
+            ),
+            result,
+        )
+        result = RESULTS.where(
+            (result == RESULTS.line_search_failed)
+            & (inconsistent | (distance > scale)),
+            RESULTS.infeasible_constraints,
+            result,
+        )
+
+    value = objective_flat(xs, args)
+    result = RESULTS.where(
+        (result == RESULTS.successful) & jnp.invert(jnp.isfinite(value)),
+        RESULTS.nonfinite_objective,
+        result,
+    )
+    failed = result != RESULTS.successful
+    kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
+
+    # The derivative of a failed solve is NaN (also for failures decided above, after
+    # the implicit function theorem).
+    z = nan_tangent_where(z, failed)
+    x, lam = z[:n], z[n:]
+    value = objective_flat(x, args)
 
     stats = {
         **stats,
@@ -324,7 +445,7 @@ def _extremize(
         stats=stats,
     )
     if throw:
-        sol = result.error_if(sol, result != RESULTS.successful)
+        sol = result.error_if(sol, failed)
     return sol
 
 

@@ -27,12 +27,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from ._custom_types import Args, Scalar
 from ._discretization import AbstractDiscretization, Chebyshev
 from ._extremize import _primal, _rewrite
+from ._implicit import implicit_jvp
 from ._kkt import AbstractKKTSolver, kkt_residual, Newton
 from ._linalg import dense_factor, dense_solve
 from ._misc import all_finite, as_traced_args, check_max_steps
@@ -603,7 +603,7 @@ def _solve_functional(
         max_steps,
         start_ok,
     )
-    z, (result, stats) = optx.internal.implicit_jvp(
+    z, (result, stats) = implicit_jvp(
         _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
     )
     x_flat = z[:num_unknowns]

@@ -344,7 +344,9 @@ class Newton(AbstractKKTSolver):
     the unknowns, so badly scaled problems (lengths of 1e3 next to heights of 1e-1)
     take full Newton steps. It converges from any start whose path avoids singular
     `K`; otherwise it stops and says why (`RESULTS.singular_kkt`,
-    `RESULTS.line_search_failed`).
+    `RESULTS.line_search_failed`, `RESULTS.nonfinite_objective` where `F` or `G` or
+    their derivatives are NaN or inf, `RESULTS.linear_solve_failed` where an
+    iterative linear solver did not converge).
 
     Converged when the full Newton step is within tolerance, `|dz| < 1` in that
     scaled norm; the step is then taken (so the error is of the order of the square
@@ -431,10 +433,19 @@ class Newton(AbstractKKTSolver):
             alpha = jnp.where(converged, one, alpha)
             z_new = z + alpha * dz
             finite = jnp.all(jnp.isfinite(z_new))
+            # Why the Newton step could not be computed: a singular KKT matrix; NaN
+            # or inf in the residual or the matrix (F or G undefined there: DenseLU
+            # and MINRES report it as `nonfinite_input`, and Lineax does so when the
+            # right-hand side is not finite); otherwise an iterative solver that did
+            # not converge.
             failed_result = RESULTS.where(
                 lin_result == lx.RESULTS.singular,
                 RESULTS.singular_kkt,
-                RESULTS.linear_solve_failed,
+                RESULTS.where(
+                    lin_result == lx.RESULTS.nonfinite_input,
+                    RESULTS.nonfinite_objective,
+                    RESULTS.linear_solve_failed,
+                ),
             )
             result = RESULTS.where(
                 converged,
@@ -447,8 +458,11 @@ class Newton(AbstractKKTSolver):
                     ),
                 ),
             )
-            result = RESULTS.where(finite, result, RESULTS.nonfinite)
             moved = converged | (lin_ok & ls_ok)
+            # (A step that is not taken keeps the status that says why.)
+            result = RESULTS.where(
+                moved & jnp.invert(finite), RESULTS.nonfinite, result
+            )
             z_new = jnp.where(moved & finite, z_new, z)
             done = converged | (result != RESULTS.successful)
             return z_new, step + 1, result, done

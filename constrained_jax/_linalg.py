@@ -10,7 +10,8 @@ function theorem in the backward pass):
   cylinder extremizations runs 4-7x faster than with LAPACK's LU
   (`DenseLU(unroll_max=0)`; `benchmarks/extremize.py`). Larger systems use
   LAPACK's LU. Singular matrices are reported (`lineax.RESULTS.singular`), never
-  returned as NaN.
+  returned as NaN; matrices with NaN or inf entries as
+  `lineax.RESULTS.nonfinite_input`.
 - [`constrained_jax.MINRES`][]: matrix-free, for symmetric (possibly indefinite)
   operators such as a KKT matrix. Needs only matrix-vector products, i.e. Hessian-vector
   products by autodiff, so an n x n matrix is never formed.
@@ -180,7 +181,7 @@ def dense_solve(factors, b: Float[Array, " m"], unroll_max: int) -> Float[Array,
     return jnp.where(singular, 0.0, x)
 
 
-_DenseLUState = tuple[Any, Any, lxi.PackedStructures]
+_DenseLUState = tuple[Any, Any, lxi.PackedStructures, Any]
 
 
 class DenseLU(lx.AbstractLinearSolver):
@@ -190,7 +191,10 @@ class DenseLU(lx.AbstractLinearSolver):
     time (fast for the tiny KKT systems of mechanics and small extremizations, batched
     with `jax.vmap`); larger ones use LAPACK. A pivot smaller than
     `10 m eps max|A|` marks the matrix singular: the solve then returns
-    `lineax.RESULTS.singular` (and zeros, never NaN).
+    `lineax.RESULTS.singular` (and zeros, never NaN). A matrix with NaN or inf
+    entries (e.g. a Hessian evaluated outside the domain of the function) is reported
+    as `lineax.RESULTS.nonfinite_input` instead, so that the caller can tell a
+    singular matrix from an undefined one.
     """
 
     unroll_max: int = 12
@@ -201,30 +205,29 @@ class DenseLU(lx.AbstractLinearSolver):
             raise ValueError("`DenseLU` may only be used with square operators.")
         matrix = operator.as_matrix()
         packed = lxi.pack_structures(operator)
-        return matrix, dense_factor(matrix, self.unroll_max), packed
+        return self._state(matrix, packed)
+
+    def _state(self, matrix, packed) -> _DenseLUState:
+        finite = jnp.all(jnp.isfinite(matrix))
+        return matrix, dense_factor(matrix, self.unroll_max), packed, finite
 
     def compute(self, state: _DenseLUState, vector: PyTree[Array], options):
         del options
-        _, factors, packed = state
+        _, factors, packed, finite = state
         b = lxi.ravel_vector(vector, packed)
         x = dense_solve(factors, b, self.unroll_max)
         singular = factors[2]
         result = lx.RESULTS.where(singular, lx.RESULTS.singular, lx.RESULTS.successful)
+        result = lx.RESULTS.where(finite, result, lx.RESULTS.nonfinite_input)
         return lxi.unravel_solution(x, packed), result, {}
 
     def transpose(self, state: _DenseLUState, options: dict[str, Any]):
-        matrix, _, packed = state
-        matrix_t = matrix.T
-        return (
-            matrix_t,
-            dense_factor(matrix_t, self.unroll_max),
-            lxi.transpose_packed_structures(packed),
-        ), {}
+        matrix, _, packed, _ = state
+        return self._state(matrix.T, lxi.transpose_packed_structures(packed)), {}
 
     def conj(self, state: _DenseLUState, options: dict[str, Any]):
-        matrix, _, packed = state
-        matrix_c = matrix.conj()
-        return (matrix_c, dense_factor(matrix_c, self.unroll_max), packed), {}
+        matrix, _, packed, _ = state
+        return self._state(matrix.conj(), packed), {}
 
     def assume_full_rank(self):
         return True
@@ -248,7 +251,8 @@ class MINRES(lx.AbstractLinearSolver):
 
     Terminates when the residual estimate satisfies
     `||A x - b|| <= atol + rtol ||b||`; failure to do so within `max_steps` is
-    reported as `lineax.RESULTS.max_steps_reached`.
+    reported as `lineax.RESULTS.max_steps_reached`, and a non-finite iterate (NaN or
+    inf in the operator or the right-hand side) as `lineax.RESULTS.nonfinite_input`.
 
     !!! note
 
@@ -291,9 +295,10 @@ class MINRES(lx.AbstractLinearSolver):
             matvec, b, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps
         )
         result = lx.RESULTS.where(
-            converged & jnp.all(jnp.isfinite(x)),
-            lx.RESULTS.successful,
-            lx.RESULTS.max_steps_reached,
+            converged, lx.RESULTS.successful, lx.RESULTS.max_steps_reached
+        )
+        result = lx.RESULTS.where(
+            jnp.all(jnp.isfinite(x)), result, lx.RESULTS.nonfinite_input
         )
         return unravel_in(x), result, {"num_steps": num_steps}
 

@@ -36,10 +36,10 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "starting point `x0` (and `multipliers0`)."
     )
     linear_solve_failed = (
-        "The linear solve for the Newton step failed (the Krylov method did not "
-        "converge within its `max_steps`, or produced non-finite values). Increase "
-        "the linear solver's `max_steps`, loosen its tolerance, or use `DenseLU()` "
-        "when the problem is small enough to form the KKT matrix."
+        "The iterative (Krylov) linear solver for the Newton step, e.g. `MINRES`, did "
+        "not converge within its `max_steps`. Increase the linear solver's "
+        "`max_steps`, loosen its tolerance, or use `DenseLU()` when the problem is "
+        "small enough to form the KKT matrix."
     )
     inconsistent_initial_state = (
         "The initial state (q0, qd0) violates the constraints (G(q0, t0) != 0 or "
@@ -79,4 +79,20 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "`cjax.Graded(discretization, left=p)` (p = 3 for a cycloid's cusp, 2 for "
         "`sqrt(x - xL)`); for a boundary layer use `cjax.PiecewiseLinear` with more "
         "nodes or a `Graded` grid at that end; or pass a looser `rtol`/`atol`."
+    )
+    infeasible_constraints = (
+        "The constraints could not be satisfied: the iterates approach a point where "
+        "G != 0 but the constraint Jacobian J = dG/dx has lost rank, a stationary "
+        "point of |G|^2 (J^T G = 0) that is not a solution, so the linearised "
+        "constraints J dx = -G have no solution of reasonable size. The constraints "
+        "may be inconsistent (e.g. x.x + 1 = 0), or x0 lies in the basin of a local "
+        "minimum of |G|. Check that G = 0 has a solution, and start nearer to it."
+    )
+    nonfinite_objective = (
+        "F, G or their derivatives (gradient, constraint Jacobian, Hessian) are NaN "
+        "or inf at the starting point x0 (or at the point the solver stopped), "
+        "although x0, multipliers0 and args are finite: the point lies outside the "
+        "domain of F or G (e.g. the log or sqrt of a negative number) or on a "
+        "singularity. Start inside the domain, or write F and G so that they are "
+        "finite wherever the solver may step."
     )
