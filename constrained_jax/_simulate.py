@@ -169,6 +169,27 @@ def simulate(
 
     **Returns:** a [`constrained_jax.Trajectory`][].
 
+    !!! note "Checked at every accepted step"
+
+        - Divergence: a non-finite state, or a constraint residual that, as a distance
+            (the residual over the row norm of the constraint Jacobian at the start),
+            exceeds a quarter of the size of the state, stops the run with
+            `RESULTS.diverged` (fixed steps included, which diffrax does not check).
+            Smaller drift is not an error: it is reported in `violation`.
+        - Release: the watched multiplier of a `Unilateral` is also sampled inside each
+            step of the attached phase; an adaptive controller refines the steps where
+            it changes sign between the ends or is not resolved, so a release inside a
+            long step is found; a fixed step over such a sign change gives
+            `RESULTS.release_missed`. A sign change in a window shorter than the
+            sample spacing of the steps the state allows can still be missed: bound
+            the step (`diffrax.PIDController(..., dtmax=...)`) when the forces have
+            such short features.
+
+    Time: `t1 < t0` integrates backwards (`dt0`, if given, negative), except with a
+    `Unilateral` (refused: release is defined forwards in time). Save times outside
+    `t_span` or not sorted in the direction of integration are refused (`ValueError`
+    when concrete, `RESULTS.invalid_time_grid` when traced).
+
     Differentiable with respect to `args`, `q0` and `qd0` (diffrax's adjoints), and
     composes with `jax.jit` and `jax.vmap`.
     """

@@ -11,7 +11,9 @@
   tolerance, multipliers of the attached phase >= 0, free flight as in closed form;
   also a shallow dip (cos t + 0.99, both ends of a long step positive) and a fast
   one (cos 40 t).
-- the same with a fixed step across the sign change: `RESULTS.release_missed`.
+- the same with one fixed step over the sign change (both ends positive):
+  `RESULTS.release_missed`; a fixed step that brackets it: released at pi/2.
+- a sign change in a window narrower than the steps: found with `dtmax` (documented).
 - NaN in q0 or args: `RESULTS.invalid_input`; save times outside t_span or unsorted:
   `ValueError` (concrete) / `RESULTS.invalid_time_grid` (traced); `max_steps` too
   small: `RESULTS.max_steps_reached`; dt0 pointing away from t1: `ValueError`.
@@ -142,7 +144,9 @@ def test_release_inside_a_long_step(floor_run):
     assert np.all(lam[attached] >= -1e-9)
     np.testing.assert_allclose(lam[attached], gravity[attached], atol=1e-8)
     np.testing.assert_allclose(lam[~attached], 0.0)
-    np.testing.assert_allclose(traj.q[:, 0], traj.ts, atol=1e-8)
+    # x = t until the run ends (at re-contact, for the dip: later saves are inf).
+    reached = np.asarray(traj.ts <= traj.release.recontact_time)
+    np.testing.assert_allclose(traj.q[reached, 0], traj.ts[reached], atol=1e-8)
 
 
 def test_free_flight_after_release_closed_form(floor_run):
@@ -167,11 +171,29 @@ def test_release_stepped_over_by_a_fixed_step_is_refused():
         jnp.array([1.0, 0.0]),
         {"g": jnp.asarray(9.81)},
         stepsize_controller=FIXED,
-        dt0=2.5,
+        dt0=5.0,
         saveat=cjax.SaveAt(t1=True),
         throw=False,
     )
+    # One step from 0 to 5: both ends have cos > 0, the samples inside do not.
     assert traj.result == cjax.RESULTS.release_missed
+
+
+def test_release_bracketed_by_a_fixed_step_is_found():
+    """A fixed step whose ends bracket the sign change (0 to 2.5: cos 2.5 < 0) is
+    root-found as usual: release at pi/2."""
+    gravity, _ = GRAVITY["cos"]
+    traj = cjax.simulate(
+        _floor_system(gravity),
+        (0.0, 5.0),
+        jnp.zeros(2),
+        jnp.array([1.0, 0.0]),
+        {"g": jnp.asarray(9.81)},
+        stepsize_controller=FIXED,
+        dt0=2.5,
+        saveat=cjax.SaveAt(t1=True),
+    )
+    np.testing.assert_allclose(traj.release.time, np.pi / 2, rtol=0, atol=1e-9)
 
 
 def test_unilateral_backwards_is_refused():
@@ -240,3 +262,26 @@ def test_dt0_pointing_away_is_refused(pend):
         cjax.simulate(
             system, (0.0, 1.0), q0, qd0, args, stepsize_controller=FIXED, dt0=-0.1
         )
+
+
+def test_narrow_pulse_found_with_bounded_steps():
+    """A sign change in a window narrower than the steps the state allows (a Gaussian
+    dip of width 0.05 in g; the state is exactly linear) is found once the steps are
+    bounded, as the docstring of `simulate` advises: release at the closed form
+    t* = 2 - 0.05 sqrt(ln 1.5)."""
+    width = 0.05
+
+    def gravity(t, a):
+        return a["g"] * (1 - 1.5 * jnp.exp(-(((t - 2) / width) ** 2)))
+
+    traj = cjax.simulate(
+        _floor_system(gravity),
+        (0.0, 2.5),
+        jnp.zeros(2),
+        jnp.array([1.0, 0.0]),
+        {"g": jnp.asarray(9.81)},
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8, dtmax=0.02),
+        saveat=cjax.SaveAt(t1=True),
+    )
+    t_star = 2 - width * np.sqrt(np.log(1.5))
+    np.testing.assert_allclose(traj.release.time, t_star, rtol=0, atol=1e-9)
