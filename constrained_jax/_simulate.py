@@ -402,8 +402,8 @@ class _WatchedSolver(diffrax.AbstractWrappedSolver):
     - a step whose ends keep the sign but a sample does not is rejected (adaptive
         controllers then shrink it until an end lies past the sign change, where the
         release event brackets it and root-finds); under a fixed-step controller, which
-        cannot reject, it fails with `RESULTS.release_missed` (mapped from diffrax's
-        `event_occurred` with no event flagged);
+        cannot reject, it fails with `RESULTS.release_missed` (signalled as diffrax's
+        `dt_min_reached`, which a fixed-step controller never reports);
     - a step along which the samples depart from the chord of the end values by more
         than `_WATCH_ROUGHNESS` of the larger end value is rejected (adaptive only), so
         that the steps resolve the multiplier where it comes near zero.
@@ -464,8 +464,10 @@ class _WatchedSolver(diffrax.AbstractWrappedSolver):
             if y_error is not None:
                 y_error = jax.tree.map(lambda e: jnp.where(reject, jnp.inf, e), y_error)
         else:
+            # (A fixed-step controller never reports `dt_min_reached`: `_simulate`
+            # reads it back as `RESULTS.release_missed`.)
             result = diffrax.RESULTS.where(
-                dipped, diffrax.RESULTS.event_occurred, result
+                dipped, diffrax.RESULTS.dt_min_reached, result
             )
         return y1, y_error, dense_info, (inner_state, w1), result
 
@@ -568,6 +570,9 @@ def _simulate(
         parts.append(t1[None])
     ts = jnp.concatenate(parts)
     grid_ok = _time_grid_ok(t0, t1, ts, _find_unilateral(system) is not None)
+    # (diffrax raises on such save times whatever `throw` says: run on a valid grid,
+    # and report `invalid_time_grid`.)
+    ts = jnp.where(grid_ok, ts, t0)
 
     phase = lambda sys_, t_start, t_stop, y, ts_, event, watch=None: _run_phase(
         sys_,
@@ -638,18 +643,15 @@ def _simulate(
             release_event,
             contact_force,
         )
-        # An event with neither condition flagged is `_WatchedSolver`'s signal that a
-        # fixed step stepped over a sign change.
         stopped = result1 == diffrax.RESULTS.event_occurred
         released_by_event = stopped & mask1[0]
+        missed = result1 == diffrax.RESULTS.dt_min_reached
+        if isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController):
+            missed = False
         result1 = RESULTS.where(
             stopped,
-            RESULTS.where(
-                mask1[0],
-                RESULTS.successful,
-                RESULTS.where(mask1[1], RESULTS.diverged, RESULTS.release_missed),
-            ),
-            RESULTS.promote(result1),
+            RESULTS.where(mask1[0], RESULTS.successful, RESULTS.diverged),
+            RESULTS.where(missed, RESULTS.release_missed, RESULTS.promote(result1)),
         )
         t_rel, q_rel, qd_rel = end1
         released = at_start | released_by_event
