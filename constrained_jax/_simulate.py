@@ -367,9 +367,9 @@ def _diverged_condition(system, q_ref, t_ref, args):
     checks nothing). The residuals are scaled by the row norms of `A` at `q_ref`, so
     that the bound reads as a distance and does not depend on how `G` is written.
     """
-    num_rows = system.constraint_jacobian(q_ref, t_ref, args).shape[0]
+    jac = system.constraint_jacobian(q_ref, t_ref, args)
+    num_rows = jac.shape[0]
     if num_rows:
-        jac = system.constraint_jacobian(q_ref, t_ref, args)
         tiny = jnp.finfo(q_ref.dtype).tiny
         row_norms = jnp.maximum(jnp.linalg.norm(jac, axis=1), tiny)
 
