@@ -60,8 +60,24 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "is regular on them."
     )
     invalid_time_grid = (
-        "The time grid of a fixed-step integration is invalid: `dt0` must be "
-        "positive, `t0 <= t1`, and the save times nondecreasing within [t0, t1]."
+        "The time grid is invalid: the save times must lie within `t_span` and be "
+        "sorted in the direction of integration, and `dt0` must point from `t0` to "
+        "`t1` (a fixed-step variational integration, and release events of a "
+        "`cjax.Unilateral`, need `t0 <= t1`)."
+    )
+    diverged = (
+        "The simulation diverged: at an accepted step the state became non-finite, or "
+        "left the constraint manifold (a constraint residual, as a distance, exceeded "
+        "a quarter of the size of the state). The step is too large for the solver: "
+        "reduce `dt0`, use an adaptive step-size controller (e.g. "
+        "`diffrax.PIDController`), or `cjax.Projection()`; with `cjax.Baumgarte`, "
+        "smaller gains."
+    )
+    release_missed = (
+        "The watched multiplier of a `cjax.Unilateral` constraint changed sign inside "
+        "a fixed step (both ends of the step kept its sign), so the release cannot be "
+        "located. Reduce `dt0`, or use an adaptive step-size controller (e.g. "
+        "`diffrax.PIDController`), which refines such steps."
     )
     fit_diverged = (
         "The fit ended with a higher loss than it started from: the optimizer "

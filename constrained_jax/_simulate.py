@@ -6,10 +6,13 @@ energy and constraint violation are computed afterwards, only at the saved times
 only if asked for (`SaveAt`).
 """
 
+from collections.abc import Callable
+
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
@@ -166,6 +169,27 @@ def simulate(
 
     **Returns:** a [`constrained_jax.Trajectory`][].
 
+    !!! note "Checked at every accepted step"
+
+        - Divergence: a non-finite state, or a constraint residual that, as a distance
+            (the residual over the row norm of the constraint Jacobian at the start),
+            exceeds a quarter of the size of the state, stops the run with
+            `RESULTS.diverged` (fixed steps included, which diffrax does not check).
+            Smaller drift is not an error: it is reported in `violation`.
+        - Release: the watched multiplier of a `Unilateral` is also sampled inside each
+            step of the attached phase; an adaptive controller refines the steps where
+            it changes sign between the ends or is not resolved, so a release inside a
+            long step is found; a fixed step over such a sign change gives
+            `RESULTS.release_missed`. A sign change in a window shorter than the
+            sample spacing of the steps the state allows can still be missed: bound
+            the step (`diffrax.PIDController(..., dtmax=...)`) when the forces have
+            such short features.
+
+    Time: `t1 < t0` integrates backwards (`dt0`, if given, negative), except with a
+    `Unilateral` (refused: release is defined forwards in time). Save times outside
+    `t_span` or not sorted in the direction of integration are refused (`ValueError`
+    when concrete, `RESULTS.invalid_time_grid` when traced).
+
     Differentiable with respect to `args`, `q0` and `qd0` (diffrax's adjoints), and
     composes with `jax.jit` and `jax.vmap`.
     """
@@ -207,6 +231,7 @@ def simulate(
     check_max_steps(max_steps)
     args = as_traced_args(args)
     t0, t1 = t_span
+    _check_time_grid(t0, t1, saveat.ts, dt0, _find_unilateral(system) is not None)
     # Floating inputs keep their precision (float32 runs in float32); others become
     # the default float.
     q0 = inexact_asarray(q0)
@@ -230,6 +255,56 @@ def simulate(
         progress_meter,
         throw,
     )
+
+
+def _concrete(x):
+    """`x` as a NumPy array, or `None` when it is traced."""
+    try:
+        return np.asarray(x)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+        return None
+
+
+def _check_time_grid(t0, t1, ts, dt0, unilateral):
+    """Refuse, at trace time, a time grid whose concrete values are invalid (traced
+    values are checked in `_simulate`, which returns `RESULTS.invalid_time_grid`)."""
+    t0, t1, ts, dt0 = (None if x is None else _concrete(x) for x in (t0, t1, ts, dt0))
+    if t0 is None or t1 is None:
+        return
+    if unilateral and t1 < t0:
+        raise ValueError(
+            f"`t_span = ({t0}, {t1})` runs backwards: release events of a "
+            "`cjax.Unilateral` constraint are defined forwards in time only (a contact "
+            "force that may only push, watched as time increases). Pass `t0 <= t1`."
+        )
+    if dt0 is not None and t1 != t0 and np.sign(dt0) != np.sign(t1 - t0):
+        raise ValueError(
+            f"`dt0 = {dt0}` points away from `t1`: it must have the sign of "
+            f"`t1 - t0 = {t1 - t0}`."
+        )
+    if ts is not None:
+        lo, hi = min(t0, t1), max(t0, t1)
+        if ts.size and (np.min(ts) < lo or np.max(ts) > hi):
+            raise ValueError(
+                f"`SaveAt(ts=...)` has times outside `t_span = ({t0}, {t1})` (from "
+                f"{np.min(ts)} to {np.max(ts)}): every save time must lie in the span."
+            )
+        steps = np.diff(ts) if t1 >= t0 else -np.diff(ts)
+        if np.any(steps < 0):
+            raise ValueError(
+                "`SaveAt(ts=...)` is not sorted in the direction of integration "
+                "(increasing for `t0 <= t1`, decreasing for `t1 < t0`): sort it."
+            )
+
+
+def _time_grid_ok(t0, t1, ts, unilateral):
+    """The checks of `_check_time_grid`, on traced values."""
+    lo, hi = jnp.minimum(t0, t1), jnp.maximum(t0, t1)
+    steps = jnp.where(t1 >= t0, jnp.diff(ts), -jnp.diff(ts))
+    ok = jnp.all((ts >= lo) & (ts <= hi)) & jnp.all(steps >= 0)
+    if unilateral:
+        ok = ok & (t1 >= t0)
+    return ok
 
 
 class Release(eqx.Module):
@@ -271,6 +346,135 @@ def _find_unilateral(system):
     return groups[0] if groups else None
 
 
+# A state is taken as diverged when a constraint residual, as a distance (the residual
+# over the row norm of the constraint Jacobian at the start of the phase), exceeds
+# this fraction of the size of the state: not drift but a trajectory that has left
+# the manifold (or is about to overflow).
+_DIVERGED = 0.25
+# Where the watched multiplier of a `Unilateral` is sampled inside each step of the
+# attached phase (fractions of the step), besides its end.
+_WATCH_SAMPLES = (0.25, 0.5, 0.75)
+# A step of the attached phase is refined while the multiplier at the samples departs
+# from the chord between its end values by more than this fraction of the larger end
+# value (it is then not resolved well enough to trust its sign between samples).
+_WATCH_ROUGHNESS = 0.25
+
+
+def _diverged_condition(system, q_ref, t_ref, args):
+    """A boolean event: non-finite state, or constraint residuals beyond `_DIVERGED`.
+
+    Checked by diffrax at every accepted step (fixed steps included, where diffrax
+    checks nothing). The residuals are scaled by the row norms of `A` at `q_ref`, so
+    that the bound reads as a distance and does not depend on how `G` is written.
+    """
+    jac = system.constraint_jacobian(q_ref, t_ref, args)
+    num_rows = jac.shape[0]
+    if num_rows:
+        tiny = jnp.finfo(q_ref.dtype).tiny
+        row_norms = jnp.maximum(jnp.linalg.norm(jac, axis=1), tiny)
+
+    def condition(t, y, args, **kwargs):
+        del kwargs
+        q, qd = y
+        bad = jnp.invert(all_finite((q, qd)))
+        if num_rows:
+            position = system.position_rows(q, t, args) / row_norms
+            velocity = system.velocity_violation(q, qd, t, args) / row_norms
+            bad = (
+                bad
+                | jnp.any(jnp.abs(position) > _DIVERGED * (1 + jnp.max(jnp.abs(q))))
+                | jnp.any(jnp.abs(velocity) > _DIVERGED * (1 + jnp.max(jnp.abs(qd))))
+            )
+        return bad
+
+    return condition
+
+
+class _WatchedSolver(diffrax.AbstractWrappedSolver):
+    """The attached phase's solver: samples the watched multiplier inside each step.
+
+    diffrax evaluates an event condition only at the ends of the steps, and the state
+    of an attached motion can be so smooth (even exactly linear: a body resting on a
+    floor) that the controller takes steps far longer than the time the multiplier
+    stays of one sign. So each step also evaluates the multiplier at
+    `_WATCH_SAMPLES` of the step (on the solver's dense output), and
+
+    - a step whose ends keep the sign but a sample does not is rejected (adaptive
+        controllers then shrink it until an end lies past the sign change, where the
+        release event brackets it and root-finds); under a fixed-step controller, which
+        cannot reject, it fails with `RESULTS.release_missed` (signalled as diffrax's
+        `dt_min_reached`, which a fixed-step controller never reports);
+    - a step along which the samples depart from the chord of the end values by more
+        than `_WATCH_ROUGHNESS` of the larger end value is rejected (adaptive only), so
+        that the steps resolve the multiplier where it comes near zero.
+
+    The multiplier at the start of the step is carried in the solver state.
+    """
+
+    solver: diffrax.AbstractSolver
+    watch: Callable
+    adaptive: bool = eqx.field(static=True)
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def root_finder(self):
+        return self.solver.root_finder  # pyright: ignore
+
+    @property
+    def interpolation_cls(self):  # pyright: ignore
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args), self.watch(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        inner_state, w0 = solver_state
+        y1, y_error, dense_info, inner_state, result = self.solver.step(
+            terms, t0, t1, y0, args, inner_state, made_jump
+        )
+        interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
+        theta = jnp.asarray(_WATCH_SAMPLES, jnp.result_type(t0))
+        ts = t0 + theta * (t1 - t0)
+        ws = jax.vmap(lambda t: self.watch(t, interpolation.evaluate(t), args))(ts)
+        w1 = self.watch(t1, y1, args)
+        dipped = (w0 >= 0) & (w1 >= 0) & jnp.any(ws < 0)
+        if self.adaptive:
+            chord = w0 + theta * (w1 - w0)
+            rough = (w0 > 0) & (
+                jnp.max(jnp.abs(ws - chord))
+                > _WATCH_ROUGHNESS * jnp.maximum(jnp.abs(w0), jnp.abs(w1))
+            )
+            reject = dipped | rough
+            if y_error is not None:
+                y_error = jax.tree.map(lambda e: jnp.where(reject, jnp.inf, e), y_error)
+        else:
+            # (A fixed-step controller never reports `dt_min_reached`: `_simulate`
+            # reads it back as `RESULTS.release_missed`.)
+            result = diffrax.RESULTS.where(
+                dipped, diffrax.RESULTS.dt_min_reached, result
+            )
+        return y1, y_error, dense_info, (inner_state, w1), result
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
+
+
 def _run_phase(
     system,
     t0,
@@ -286,12 +490,23 @@ def _run_phase(
     adjoint,
     progress_meter,
     event,
+    watch=None,
 ):
     """One diffrax solve; returns the states at `ts` (or `None`), the last state
-    reached and its time, the result and the stats."""
+    reached and its time, the result, the stats and diffrax's event mask.
+
+    `event` is a tuple of condition functions (the phase's own, if any, then the
+    divergence check); `watch`, if given, is the multiplier the attached phase
+    samples inside each step (`_WatchedSolver`)."""
     if isinstance(stabilization, Projection):
         solver = resolve_implicit_tolerances(solver, stepsize_controller)
         solver = ProjectedSolver(solver, system, stabilization.iterations)
+    if watch is not None:
+        solver = _WatchedSolver(
+            solver,
+            watch,
+            isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController),
+        )
     terms = diffrax.ODETerm(_vector_field(system, stabilization))
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
@@ -315,7 +530,7 @@ def _run_phase(
     (q_end, qd_end) = sol.ys[0]
     end = (sol.ts[0][0], q_end[0], qd_end[0])
     saved = sol.ys[1] if ts is not None else None
-    return saved, end, sol.result, sol.stats
+    return saved, end, sol.result, sol.stats, sol.event_mask
 
 
 @eqx.filter_jit
@@ -354,8 +569,12 @@ def _simulate(
     if saveat.t1:
         parts.append(t1[None])
     ts = jnp.concatenate(parts)
+    grid_ok = _time_grid_ok(t0, t1, ts, _find_unilateral(system) is not None)
+    # (diffrax raises on such save times whatever `throw` says: run on a valid grid,
+    # and report `invalid_time_grid`.)
+    ts = jnp.where(grid_ok, ts, t0)
 
-    phase = lambda sys_, t_start, t_stop, y, ts_, event: _run_phase(
+    phase = lambda sys_, t_start, t_stop, y, ts_, event, watch=None: _run_phase(
         sys_,
         t_start,
         t_stop,
@@ -370,6 +589,7 @@ def _simulate(
         adjoint,
         progress_meter,
         event,
+        watch,
     )
     found = _find_unilateral(system)
     release = None
@@ -380,9 +600,16 @@ def _simulate(
         end = (ts[-1], q[-1], qd[-1])
         systems_at = None
     elif found is None:
-        saved, end, result, stats = phase(system, t0, t1, (q0, qd0), ts, None)
+        diverged_event = diffrax.Event(_diverged_condition(system, q0, t0, args))
+        saved, end, result, stats, _ = phase(
+            system, t0, t1, (q0, qd0), ts, diverged_event
+        )
         q, qd = saved
-        result = RESULTS.promote(result)
+        result = RESULTS.where(
+            result == diffrax.RESULTS.event_occurred,
+            RESULTS.diverged,
+            RESULTS.promote(result),
+        )
         systems_at = None
     else:
         index, group = found
@@ -399,24 +626,32 @@ def _simulate(
 
         at_start = contact_force(t0, (q0, qd0), args) < 0
         release_event = diffrax.Event(
-            contact_force, root_finder=optx.Newton(rtol=1e-12, atol=1e-12)
+            (contact_force, _diverged_condition(system, q0, t0, args)),
+            root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
         )
         # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
         # phase if it already has the wrong sign).
         # (diffrax needs t0 < t1: the empty phase is a tiny one, discarded.)
         tiny = 64 * jnp.finfo(q0.dtype).eps * (1 + jnp.abs(t0))
         t_attach_end = jnp.where(at_start, t0 + tiny, t1)
-        saved1, end1, result1, stats = phase(
+        saved1, end1, result1, stats, mask1 = phase(
             system,
             t0,
             t_attach_end,
             (q0, qd0),
             jnp.clip(ts, t0, t_attach_end),
             release_event,
+            contact_force,
         )
-        released_by_event = result1 == diffrax.RESULTS.event_occurred
+        stopped = result1 == diffrax.RESULTS.event_occurred
+        released_by_event = stopped & mask1[0]
+        missed = result1 == diffrax.RESULTS.dt_min_reached
+        if isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController):
+            missed = False
         result1 = RESULTS.where(
-            released_by_event, RESULTS.successful, RESULTS.promote(result1)
+            stopped,
+            RESULTS.where(mask1[0], RESULTS.successful, RESULTS.diverged),
+            RESULTS.where(missed, RESULTS.release_missed, RESULTS.promote(result1)),
         )
         t_rel, q_rel, qd_rel = end1
         released = at_start | released_by_event
@@ -426,22 +661,31 @@ def _simulate(
         result1 = RESULTS.where(at_start, RESULTS.successful, result1)
         # Phase 2, free: from the release to t1 (empty if never released), ending at
         # re-contact if a gap is given.
-        recontact_event = None
+        diverged_free = _diverged_condition(free, q_rel, t_rel, args)
+        recontact_event = diffrax.Event((diverged_free,))
         if group.gap is not None:
             # The gap is zero at release: re-contact is when it falls below
             # -delta, delta = sqrt(eps) (1 + |q_release|), so that round-off right
             # after release is not taken for a collision.
             delta = jnp.sqrt(jnp.finfo(q0.dtype).eps) * (1 + jnp.max(jnp.abs(q_rel)))
             recontact_event = diffrax.Event(
-                lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
+                (
+                    diverged_free,
+                    lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
+                ),
                 root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
             )
         ts2 = jnp.clip(ts, t_rel, t1)
-        saved2, end2, result2, stats2 = phase(
+        saved2, end2, result2, stats2, mask2 = phase(
             free, t_rel, t1, (q_rel, qd_rel), ts2, recontact_event
         )
-        recontact = result2 == diffrax.RESULTS.event_occurred
-        result2 = RESULTS.where(recontact, RESULTS.successful, RESULTS.promote(result2))
+        stopped2 = result2 == diffrax.RESULTS.event_occurred
+        recontact = stopped2 & jnp.invert(mask2[0])
+        result2 = RESULTS.where(
+            stopped2,
+            RESULTS.where(mask2[0], RESULTS.diverged, RESULTS.successful),
+            RESULTS.promote(result2),
+        )
         t_end2 = end2[0]
         attached = (ts <= t_rel) & jnp.invert(at_start)
         # After re-contact nothing is computed: those save times are inf.
@@ -536,6 +780,7 @@ def _simulate(
         RESULTS.nonfinite,
         result,
     )
+    result = RESULTS.where(grid_ok, result, RESULTS.invalid_time_grid)
     result = RESULTS.where(consistent, result, RESULTS.inconsistent_initial_state)
     result = RESULTS.where(start_ok, result, RESULTS.invalid_input)
     violation = None

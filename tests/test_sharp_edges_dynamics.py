@@ -1,0 +1,287 @@
+"""Sharp edges of `simulate` (issue 11): each returns the right trajectory or says not.
+
+- fixed-step Euler on the Cartesian pendulum, dt0 = 0.5 over [0, 100] (|q| reached
+  1e84 with `successful`): `RESULTS.diverged`, detected at the first accepted step off
+  the manifold; same for Heun + Projection, Baumgarte with huge gains at a fixed step.
+- a `Unilateral` with t1 < t0: `ValueError` (concrete), `RESULTS.invalid_time_grid`
+  (traced); t1 == t0: `successful`, the initial state. A plain system with t1 < t0
+  integrates backwards, right (round trip back to the start).
+- a floor contact under gravity 9.81 cos(t) (the state moves exactly linearly, the
+  controller took one step over the release): released at pi/2 to the root finder's
+  tolerance, multipliers of the attached phase >= 0, free flight as in closed form;
+  also a shallow dip (cos t + 0.99, both ends of a long step positive) and a fast
+  one (cos 40 t).
+- the same with one fixed step over the sign change (both ends positive):
+  `RESULTS.release_missed`; a fixed step that brackets it: released at pi/2.
+- a sign change in a window narrower than the steps: found with `dtmax` (documented).
+- NaN in q0 or args: `RESULTS.invalid_input`; save times outside t_span or unsorted:
+  `ValueError` (concrete) / `RESULTS.invalid_time_grid` (traced); `max_steps` too
+  small: `RESULTS.max_steps_reached`; dt0 pointing away from t1: `ValueError`.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+from constrained_jax.scenes import pendulum
+
+
+FIXED = diffrax.ConstantStepSize()
+
+
+@pytest.fixture(scope="module")
+def pend():
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(1.0, 0.0, args)
+    return pendulum.system(), args, q0, qd0
+
+
+@pytest.mark.parametrize(
+    "solver, stabilization",
+    [
+        (diffrax.Euler(), cjax.Unstabilized()),
+        (diffrax.Heun(), cjax.Projection()),
+        (diffrax.Tsit5(), cjax.Baumgarte(alpha=1e3, beta=1e3)),
+    ],
+)
+def test_fixed_step_blow_up_is_refused(pend, solver, stabilization):
+    system, args, q0, qd0 = pend
+    traj = cjax.simulate(
+        system,
+        (0.0, 100.0),
+        q0,
+        qd0,
+        args,
+        solver=solver,
+        stabilization=stabilization,
+        stepsize_controller=FIXED,
+        dt0=0.5,
+        saveat=cjax.SaveAt(t1=True),
+        throw=False,
+    )
+    assert traj.result == cjax.RESULTS.diverged
+    with pytest.raises(Exception, match="diverged"):
+        cjax.simulate(
+            system,
+            (0.0, 100.0),
+            q0,
+            qd0,
+            args,
+            solver=solver,
+            stabilization=stabilization,
+            stepsize_controller=FIXED,
+            dt0=0.5,
+        )
+
+
+def test_fixed_step_small_enough_is_successful(pend):
+    """The divergence check does not flag an accurate fixed-step run: Tsit5 at
+    dt0 = 0.01 keeps the rod length and matches the closed-form period."""
+    system, args, q0, qd0 = pend
+    period = pendulum.period(1.0, args)
+    traj = cjax.simulate(
+        system,
+        (0.0, period),
+        q0,
+        qd0,
+        args,
+        stepsize_controller=FIXED,
+        dt0=period / 400,
+        saveat=cjax.SaveAt(t1=True),
+    )
+    assert traj.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(traj.q[-1], q0, atol=1e-7)
+
+
+def _floor_system(gravity):
+    """A particle on the floor y = 0 that can only push up: `L = |qd|^2/2 - g(t) y`.
+    Attached, `y'' = 0` and the multiplier is `lambda = g(t)`."""
+
+    def lagrangian(q, qd, t, args):
+        return 0.5 * jnp.dot(qd, qd) - gravity(t, args) * q[1]
+
+    floor = cjax.Unilateral(
+        cjax.Holonomic(lambda q, t, args: q[1]), gap=lambda q, t, args: q[1]
+    )
+    return cjax.LagrangianSystem(lagrangian, constraints=floor)
+
+
+GRAVITY = {
+    "cos": (lambda t, a: a["g"] * jnp.cos(t), np.pi / 2),
+    "shallow dip": (lambda t, a: a["g"] * (jnp.cos(t) + 0.99), np.arccos(-0.99)),
+    "fast": (lambda t, a: a["g"] * jnp.cos(40 * t), np.pi / 80),
+}
+TS = jnp.linspace(0.0, 5.0, 51)
+
+
+@pytest.fixture(scope="module", params=list(GRAVITY))
+def floor_run(request):
+    gravity, t_star = GRAVITY[request.param]
+    traj = cjax.simulate(
+        _floor_system(gravity),
+        (0.0, 5.0),
+        jnp.zeros(2),
+        jnp.array([1.0, 0.0]),
+        {"g": jnp.asarray(9.81)},
+        saveat=cjax.SaveAt(ts=TS),
+        throw=False,
+    )
+    return request.param, t_star, traj
+
+
+def test_release_inside_a_long_step(floor_run):
+    name, t_star, traj = floor_run
+    assert traj.result == cjax.RESULTS.successful
+    assert bool(traj.release.released)
+    np.testing.assert_allclose(traj.release.time, t_star, rtol=0, atol=1e-9)
+    attached = np.asarray(traj.ts <= traj.release.time)
+    lam = np.asarray(traj.multipliers[:, 0])
+    gravity = np.asarray(GRAVITY[name][0](traj.ts, {"g": 9.81}))
+    # Push-only: never negative while attached (lambda = g(t) there, >= 0).
+    assert np.all(lam[attached] >= -1e-9)
+    np.testing.assert_allclose(lam[attached], gravity[attached], atol=1e-8)
+    np.testing.assert_allclose(lam[~attached], 0.0)
+    # x = t until the run ends (at re-contact, for the dip: later saves are inf).
+    reached = np.asarray(traj.ts <= traj.release.recontact_time)
+    np.testing.assert_allclose(traj.q[reached, 0], traj.ts[reached], atol=1e-8)
+
+
+def test_free_flight_after_release_closed_form(floor_run):
+    """For g = 9.81 cos t: after t* = pi/2, y = 9.81 (t - pi/2 + cos t)."""
+    name, t_star, traj = floor_run
+    if name != "cos":
+        pytest.skip("closed form for the cos case")
+    t = np.asarray(traj.ts)
+    y = np.where(t > t_star, 9.81 * (t - t_star + np.cos(t)), 0.0)
+    yd = np.where(t > t_star, 9.81 * (1 - np.sin(t)), 0.0)
+    np.testing.assert_allclose(traj.q[:, 1], y, atol=1e-6)
+    np.testing.assert_allclose(traj.qd[:, 1], yd, atol=1e-6)
+    assert not bool(traj.release.recontact)
+
+
+def test_release_stepped_over_by_a_fixed_step_is_refused():
+    gravity, _ = GRAVITY["cos"]
+    traj = cjax.simulate(
+        _floor_system(gravity),
+        (0.0, 5.0),
+        jnp.zeros(2),
+        jnp.array([1.0, 0.0]),
+        {"g": jnp.asarray(9.81)},
+        stepsize_controller=FIXED,
+        dt0=5.0,
+        saveat=cjax.SaveAt(t1=True),
+        throw=False,
+    )
+    # One step from 0 to 5: both ends have cos > 0, the samples inside do not.
+    assert traj.result == cjax.RESULTS.release_missed
+
+
+def test_release_bracketed_by_a_fixed_step_is_found():
+    """A fixed step whose ends bracket the sign change (0 to 2.5: cos 2.5 < 0) is
+    root-found as usual: release at pi/2."""
+    gravity, _ = GRAVITY["cos"]
+    traj = cjax.simulate(
+        _floor_system(gravity),
+        (0.0, 5.0),
+        jnp.zeros(2),
+        jnp.array([1.0, 0.0]),
+        {"g": jnp.asarray(9.81)},
+        stepsize_controller=FIXED,
+        dt0=2.5,
+        saveat=cjax.SaveAt(t1=True),
+    )
+    np.testing.assert_allclose(traj.release.time, np.pi / 2, rtol=0, atol=1e-9)
+
+
+def test_unilateral_backwards_is_refused():
+    gravity, _ = GRAVITY["cos"]
+    system = _floor_system(gravity)
+    args = {"g": jnp.asarray(9.81)}
+    with pytest.raises(ValueError, match="backwards"):
+        cjax.simulate(system, (0.0, -1.0), jnp.zeros(2), jnp.zeros(2), args)
+
+    @jax.jit
+    def run(t1):
+        return cjax.simulate(
+            system, (0.0, t1), jnp.zeros(2), jnp.zeros(2), args, throw=False
+        )
+
+    assert run(jnp.asarray(-1.0)).result == cjax.RESULTS.invalid_time_grid
+    empty = run(jnp.asarray(0.0))
+    assert empty.result == cjax.RESULTS.successful
+    np.testing.assert_array_equal(empty.q[-1], jnp.zeros(2))
+
+
+def test_plain_system_backwards_round_trip(pend):
+    """Without a `Unilateral`, t1 < t0 integrates backwards: running forwards again
+    from the end returns to the start."""
+    system, args, _, _ = pend
+    q0, qd0 = pendulum.state(0.5, 1.0, args)
+    back = cjax.simulate(system, (0.0, -1.3), q0, qd0, args)
+    assert back.result == cjax.RESULTS.successful
+    fwd = cjax.simulate(system, (-1.3, 0.0), back.q[-1], back.qd[-1], args)
+    np.testing.assert_allclose(fwd.q[-1], q0, atol=1e-7)
+    np.testing.assert_allclose(fwd.qd[-1], qd0, atol=1e-7)
+
+
+def test_invalid_inputs(pend):
+    system, args, q0, qd0 = pend
+    bad_q0 = q0.at[0].set(jnp.nan)
+    traj = cjax.simulate(system, (0.0, 1.0), bad_q0, qd0, args, throw=False)
+    assert traj.result == cjax.RESULTS.invalid_input
+    bad_args = dict(args, g=jnp.asarray(jnp.nan))
+    traj = cjax.simulate(system, (0.0, 1.0), q0, qd0, bad_args, throw=False)
+    assert traj.result == cjax.RESULTS.invalid_input
+    traj = cjax.simulate(system, (0.0, 10.0), q0, qd0, args, max_steps=2, throw=False)
+    assert traj.result == cjax.RESULTS.max_steps_reached
+
+
+@pytest.mark.parametrize(
+    "ts", [jnp.array([0.5, 2.0]), jnp.array([-0.5, 0.5]), jnp.array([0.7, 0.3])]
+)
+def test_bad_save_times_are_refused(pend, ts):
+    system, args, q0, qd0 = pend
+    with pytest.raises(ValueError, match="SaveAt"):
+        cjax.simulate(system, (0.0, 1.0), q0, qd0, args, saveat=cjax.SaveAt(ts=ts))
+
+    @jax.jit
+    def run(ts_):
+        return cjax.simulate(
+            system, (0.0, 1.0), q0, qd0, args, saveat=cjax.SaveAt(ts=ts_), throw=False
+        )
+
+    assert run(ts).result == cjax.RESULTS.invalid_time_grid
+
+
+def test_dt0_pointing_away_is_refused(pend):
+    system, args, q0, qd0 = pend
+    with pytest.raises(ValueError, match="dt0"):
+        cjax.simulate(
+            system, (0.0, 1.0), q0, qd0, args, stepsize_controller=FIXED, dt0=-0.1
+        )
+
+
+def test_narrow_pulse_found_with_bounded_steps():
+    """A sign change in a window narrower than the steps the state allows (a Gaussian
+    dip of width 0.05 in g; the state is exactly linear) is found once the steps are
+    bounded, as the docstring of `simulate` advises: release at the closed form
+    t* = 2 - 0.05 sqrt(ln 1.5)."""
+    width = 0.05
+
+    def gravity(t, a):
+        return a["g"] * (1 - 1.5 * jnp.exp(-(((t - 2) / width) ** 2)))
+
+    traj = cjax.simulate(
+        _floor_system(gravity),
+        (0.0, 2.5),
+        jnp.zeros(2),
+        jnp.array([1.0, 0.0]),
+        {"g": jnp.asarray(9.81)},
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8, dtmax=0.02),
+        saveat=cjax.SaveAt(t1=True),
+    )
+    t_star = 2 - width * np.sqrt(np.log(1.5))
+    np.testing.assert_allclose(traj.release.time, t_star, rtol=0, atol=1e-9)
