@@ -311,11 +311,11 @@ def _ldl_factor_gauge(a: list[list[Array]]):
     return lower, d, null, breakdown
 
 
-def _ldl_solve_gauge(lower, d, null, b: list[Array]):
+def _ldl_solve_gauge(lower, d, null, b: list[Array], size=None):
     """Solve `L D L^T x = b` from `_ldl_factor_gauge`, with `x`'s entries at zero
     pivots set to 0. Returns `(x, inconsistent)`: `inconsistent` when `b` has a
     component along a null direction beyond round-off (`|b . v_j| > 100 m eps
-    max|b|`): no solution exists."""
+    size`, `size = max|b|` unless given): no solution exists."""
     m = len(d)
     y: list[Array] = []
     for i in range(m):
@@ -323,7 +323,8 @@ def _ldl_solve_gauge(lower, d, null, b: list[Array]):
         for p in range(i):
             s = s - lower[i][p] * y[p]
         y.append(s)
-    size = functools.reduce(jnp.maximum, [jnp.abs(v) for v in b])
+    if size is None:
+        size = functools.reduce(jnp.maximum, [jnp.abs(v) for v in b])
     tol = 100 * m * jnp.finfo(jnp.result_type(size)).eps * size
     inconsistent = functools.reduce(
         jnp.logical_or, [null[j] & (jnp.abs(y[j]) > tol) for j in range(m)]
@@ -413,8 +414,9 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
             x = jnp.stack(u)
             return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
         y = []  # M~^-1 A^T
+        size_a = functools.reduce(jnp.maximum, [jnp.abs(v) for row in a for v in row])
         for r in range(k):
-            y_r, inconsistent = _ldl_solve_gauge(lower, d, null, a[r])
+            y_r, inconsistent = _ldl_solve_gauge(lower, d, null, a[r], size_a)
             y.append(y_r)
             singular = singular | inconsistent
         schur = [
