@@ -243,6 +243,11 @@ class FullKKTLU(AbstractSaddlePointSolver):
     and the solution is accepted only if it satisfies the whole system to round-off
     (`|K z - r| <= 100 m eps (|K| |z|_1 + |r|)`), i.e. if no force acts along them.
     Zero pivots in the columns of `lambda` (redundant constraints) are `singular`.
+    Partial pivoting is not rank-revealing: for a gauge direction that is not along a
+    coordinate it may leave the dependent row where a later column needs it, and then
+    reports `singular` (never a wrong answer); [`constrained_jax.RangeSpaceLDL`][]
+    solves those. A massless coordinate that nothing couples to (a zero row and
+    column) is always handled.
     """
 
     unroll_max: int = 12
