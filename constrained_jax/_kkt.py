@@ -19,12 +19,14 @@ module holds
 """
 
 import abc
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import jax.scipy as jsp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
@@ -171,6 +173,18 @@ class AbstractSaddlePointSolver(eqx.Module):
     with `M` (n x n) symmetric and `A` (k x n). The system is nonsingular exactly when
     `A` has full row rank and `M` is positive definite on the null space of `A`; `M`
     itself may be singular.
+
+    **Free gauge directions.** A direction `v` with `M v = 0` and `A v = 0` (no
+    inertia, and free of the constraints: a massless coordinate that nothing couples
+    to, like the spin of the rolling cylinder with `I = 0` once it has let go) makes
+    the system singular, but it need not make it unsolvable. If no force acts along it
+    (`f . v = 0` to round-off) the equations hold for every component of `x` along `v`:
+    such a direction is a free gauge, and the solvers return the solution whose
+    unknown at the vanishing pivot is zero (for a massless coordinate: its
+    acceleration is zero, so its velocity is held). If a force acts along it
+    (`f . v != 0`, e.g. a potential gradient on a massless coordinate) the equations
+    are inconsistent and the solve reports `singular`. Redundant constraints (`A`
+    rank-deficient) are always reported `singular`: their multipliers are not unique.
     """
 
     @abc.abstractmethod
@@ -181,7 +195,37 @@ class AbstractSaddlePointSolver(eqx.Module):
         rhs: Float[Array, " n"],
         bias: Float[Array, " k"],
     ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
-        """Returns `(x, lambda, singular)`; when `singular`, `x` and `lambda` are 0."""
+        """Returns `(x, lambda, singular)`; when `singular`, `x` and `lambda` are 0.
+
+        `singular` is false for a free gauge direction (no inertia, no force, see the
+        class docstring): `x` is then the solution with zero component at its pivot.
+        """
+
+
+def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
+    """Solve `P K x = L U x = b[perm]` given an LU factorisation whose pivots `zero`
+    vanish: those unknowns are set to 0 and their rows of `U x = y` are dropped (the
+    caller checks the residual)."""
+    m = lu.shape[-1]
+    if unrolled:
+        y = b[perm]
+        ys = []
+        for i in range(m):
+            s = y[i]
+            for j in range(i):
+                s = s - lu[i, j] * ys[j]
+            ys.append(s)
+        xs = [None] * m
+        for i in reversed(range(m)):
+            s = ys[i]
+            for j in range(i + 1, m):
+                s = s - lu[i, j] * xs[j]
+            xs[i] = jnp.where(zero[i], 0.0, s / jnp.where(zero[i], 1.0, lu[i, i]))
+        return jnp.stack(xs)
+    y = jsp.linalg.solve_triangular(lu, b[perm], lower=True, unit_diagonal=True)
+    y = jnp.where(zero, 0.0, y)
+    upper = jnp.where(zero[:, None], jnp.eye(m, dtype=lu.dtype), jnp.triu(lu))
+    return jsp.linalg.solve_triangular(upper, y, lower=False)
 
 
 class FullKKTLU(AbstractSaddlePointSolver):
@@ -192,6 +236,18 @@ class FullKKTLU(AbstractSaddlePointSolver):
     `M` is indefinite. Under `jax.vmap` the pivoting (row selection, permutation)
     becomes batched `dot`s and gathers that XLA on CPU does not fuse: for small
     systems it costs several times [`constrained_jax.RangeSpaceLDL`][].
+
+    A pivot below `10 m eps` of the largest entry counts as zero. Zero pivots in the
+    columns of `x` are free gauge directions (see
+    [`constrained_jax.AbstractSaddlePointSolver`][]): their unknowns are set to zero
+    and the solution is accepted only if it satisfies the whole system to round-off
+    (`|K z - r| <= 100 m eps (|K| |z|_1 + |r|)`), i.e. if no force acts along them.
+    Zero pivots in the columns of `lambda` (redundant constraints) are `singular`.
+    Partial pivoting is not rank-revealing: for a gauge direction that is not along a
+    coordinate it may leave the dependent row where a later column needs it, and then
+    reports `singular` (never a wrong answer); [`constrained_jax.RangeSpaceLDL`][]
+    solves those. A massless coordinate that nothing couples to (a zero row and
+    column) is always handled.
     """
 
     unroll_max: int = 12
@@ -204,9 +260,87 @@ class FullKKTLU(AbstractSaddlePointSolver):
             zeros = jnp.zeros((k, k), mass.dtype)
             matrix = jnp.block([[mass, -jac.T], [jac, zeros]])
             vector = jnp.concatenate([rhs, -bias])
-        factors = dense_factor(matrix, self.unroll_max)
-        sol = dense_solve(factors, vector, self.unroll_max)
-        return sol[:n], sol[n:], factors[2]
+        m = n + k
+        lu, perm, _ = dense_factor(matrix, self.unroll_max)
+        eps = jnp.finfo(matrix.dtype).eps
+        scale = jnp.max(jnp.abs(matrix))
+        zero = jnp.abs(jnp.diagonal(lu)) <= 10 * m * eps * scale
+        sol = _lu_solve_gauge(lu, perm, zero, vector, m <= self.unroll_max)
+        # With vanishing pivots the dropped rows are consistency conditions: the
+        # solution stands only if the whole system holds to round-off.
+        residual = jnp.max(jnp.abs(matrix @ sol - vector))
+        size = scale * jnp.sum(jnp.abs(sol)) + jnp.max(jnp.abs(vector))
+        consistent = residual <= 100 * m * eps * size
+        singular = jnp.any(zero[n:]) | (jnp.any(zero) & jnp.invert(consistent))
+        singular = singular | jnp.invert(jnp.all(jnp.isfinite(sol)))
+        sol = jnp.where(singular, 0.0, sol)
+        return sol[:n], sol[n:], singular
+
+
+def _ldl_factor_gauge(a: list[list[Array]]):
+    """`a = L D L^T` without pivoting (symmetric `a` as nested lists of scalars,
+    unrolled), allowing zero pivots with a zero column: a positive semidefinite `a`
+    with null directions.
+
+    Returns `(L, d, null, breakdown)`: `L[i][j]` (`j < i`), the pivots `d[j]` (1 at a
+    zero pivot), `null[j]` (the pivot is below `10 m eps max|a|`), and
+    `breakdown`: a zero pivot whose column is not zero
+    (impossible for positive semidefinite `a`, where `|t| <= sqrt(d_i d_j)`): an
+    indefinite matrix that needs pivoting. A zero pivot's column of `L` is 0, so the
+    factorisation is that of `a` with its null directions split off: forward
+    substitution gives, at a zero pivot `j`, the component `b . v_j` of the
+    right-hand side along the null vector `v_j = L^-T e_j` (`a v_j = 0`).
+    """
+    m = len(a)
+    scale = functools.reduce(jnp.maximum, [jnp.abs(x) for row in a for x in row])
+    threshold = 10 * m * jnp.finfo(jnp.result_type(scale)).eps * scale
+    column_threshold = 2 * jnp.sqrt(threshold * scale)
+    lower: list[list[Array]] = [[] for _ in range(m)]
+    d: list[Array] = []
+    null: list[Array] = []
+    breakdown = jnp.array(False)
+    for j in range(m):
+        s = a[j][j]
+        for p in range(j):
+            s = s - lower[j][p] * lower[j][p] * d[p]
+        small = jnp.abs(s) <= threshold
+        null.append(small)
+        safe = jnp.where(small, jnp.ones_like(s), s)
+        d.append(safe)
+        for i in range(j + 1, m):
+            t = a[i][j]
+            for p in range(j):
+                t = t - lower[i][p] * lower[j][p] * d[p]
+            breakdown = breakdown | (small & (jnp.abs(t) > column_threshold))
+            lower[i].append(jnp.where(small, jnp.zeros_like(t), t / safe))
+    return lower, d, null, breakdown
+
+
+def _ldl_solve_gauge(lower, d, null, b: list[Array], size=None):
+    """Solve `L D L^T x = b` from `_ldl_factor_gauge`, with `x`'s entries at zero
+    pivots set to 0. Returns `(x, inconsistent)`: `inconsistent` when `b` has a
+    component along a null direction beyond round-off (`|b . v_j| > 100 m eps
+    size`, `size = max|b|` unless given): no solution exists."""
+    m = len(d)
+    y: list[Array] = []
+    for i in range(m):
+        s = b[i]
+        for p in range(i):
+            s = s - lower[i][p] * y[p]
+        y.append(s)
+    if size is None:
+        size = functools.reduce(jnp.maximum, [jnp.abs(v) for v in b])
+    tol = 100 * m * jnp.finfo(jnp.result_type(size)).eps * size
+    inconsistent = functools.reduce(
+        jnp.logical_or, [null[j] & (jnp.abs(y[j]) > tol) for j in range(m)]
+    )
+    x: list = [None] * m
+    for i in reversed(range(m)):
+        s = jnp.where(null[i], jnp.zeros_like(y[i]), y[i] / d[i])
+        for p in range(i + 1, m):
+            s = s - lower[p][i] * x[p]
+        x[i] = s
+    return x, inconsistent
 
 
 class RangeSpaceLDL(AbstractSaddlePointSolver):
@@ -230,13 +364,24 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
     several times faster than [`constrained_jax.FullKKTLU`][] and close to hand-written
     equations. Systems with `n + k > unroll_max` use `FullKKTLU`.
 
+    **Free gauge directions.** For positive semidefinite `M`, `M~` is singular exactly
+    when some `v != 0` has `M v = 0` and `A v = 0` (see
+    [`constrained_jax.AbstractSaddlePointSolver`][]). Its pivot vanishes (below
+    `10 m eps` of the largest entry, with a zero column): the unknown at that pivot is
+    set to zero, after checking that the right-hand side `f` and the rows of `A` have
+    no component along `v` beyond round-off; otherwise the system is `singular` (a
+    force along a direction without inertia). So the rolling cylinder with `I = 0`
+    keeps its spin rate once it flies free, and a massless coordinate with a
+    potential gradient on it is refused.
+
     !!! note
 
-        A pivot below `10 m eps` of the largest entry counts as a breakdown and the
-        system is reported singular. For positive semidefinite `M` (every kinetic
-        energy) that happens only when the KKT matrix is singular to working
-        precision. For an *indefinite* `M` (not a kinetic energy) the elimination may
-        break down on a nonsingular KKT matrix: use [`constrained_jax.FullKKTLU`][].
+        A pivot below `10 m eps` of the largest entry with a nonzero column counts as
+        a breakdown and the system is reported singular. For positive semidefinite `M`
+        (every kinetic energy) that never happens. For an *indefinite* `M` (not a
+        kinetic energy) the elimination may break down on a nonsingular KKT matrix:
+        use [`constrained_jax.FullKKTLU`][]. A vanishing pivot of the Schur complement
+        (redundant constraints) is reported singular.
 
     **Reference:** J. Nocedal and S. J. Wright, *Numerical Optimization*, 2nd ed.,
     Springer (2006), sections 16.2-16.3 (range-space method, augmented Lagrangian).
@@ -267,12 +412,18 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
                 for i in range(n)
             ]
             f = [f[i] - rho * sum(a[r][i] * b[r] for r in range(k)) for i in range(n)]
-        lower, d, singular = ldl_factor_unrolled(m)
-        u = ldl_solve_unrolled(lower, d, f)
+        lower, d, null, singular = _ldl_factor_gauge(m)
+        u, inconsistent = _ldl_solve_gauge(lower, d, null, f)
+        singular = singular | inconsistent
         if k == 0:
             x = jnp.stack(u)
             return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
-        y = [ldl_solve_unrolled(lower, d, a[r]) for r in range(k)]  # M~^-1 A^T
+        y = []  # M~^-1 A^T
+        size_a = functools.reduce(jnp.maximum, [jnp.abs(v) for row in a for v in row])
+        for r in range(k):
+            y_r, inconsistent = _ldl_solve_gauge(lower, d, null, a[r], size_a)
+            y.append(y_r)
+            singular = singular | inconsistent
         schur = [
             [sum(a[r][i] * y[s][i] for i in range(n)) for s in range(k)]
             for r in range(k)

@@ -49,8 +49,10 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     singular_dynamics = (
         "The KKT matrix [[M, -A^T], [A, 0]] of the equations of motion became "
-        "singular during the simulation: the Lagrangian is not regular in a velocity "
-        "direction the constraints leave free, or the constraints became dependent."
+        "singular during the simulation, with no solution: a force acts along a "
+        "velocity direction that has no inertia and that the constraints leave free "
+        "(a direction with no inertia and no force is a free gauge and gets zero "
+        "acceleration), or the constraints became dependent."
     )
     variational_step_failed = (
         "A step of the variational integrator failed: its Newton iteration did not "

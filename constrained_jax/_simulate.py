@@ -6,6 +6,7 @@ energy and constraint violation are computed afterwards, only at the saved times
 only if asked for (`SaveAt`).
 """
 
+import warnings
 from collections.abc import Callable
 
 import diffrax
@@ -17,7 +18,15 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import Unilateral
-from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
+from ._misc import (
+    all_finite,
+    as_traced_args,
+    check_max_steps,
+    CONSISTENCY_TOLERANCE,
+    float_tolerance,
+    inexact_asarray,
+    SIMULATE_TOLERANCE,
+)
 from ._results import RESULTS
 from ._stabilization import (
     AbstractStabilization,
@@ -131,14 +140,12 @@ def simulate(
     *,
     solver: diffrax.AbstractSolver = diffrax.Tsit5(),
     stabilization: AbstractStabilization = Unstabilized(),
-    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(
-        rtol=1e-8, atol=1e-8
-    ),
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
     saveat: SaveAt = SaveAt(t1=True),
     dt0: float | None = None,
     max_steps: int = 16384,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
-    consistency_tol: float = 1e-8,
+    consistency_tol: float | None = None,
     progress_meter: diffrax.AbstractProgressMeter = diffrax.NoProgressMeter(),
     throw: bool = True,
 ) -> Trajectory:
@@ -150,7 +157,10 @@ def simulate(
     - `t_span`: `(t0, t1)`.
     - `q0`, `qd0`: the initial state, shape `(n,)`; it must satisfy the constraints
         to within `consistency_tol` (relative to `1 + |q0|`, `1 + |qd0|`); see
-        [`constrained_jax.consistent_initial_state`][].
+        [`constrained_jax.consistent_initial_state`][]. `consistency_tol=None`
+        (default) follows the dtype of `q0`: `1e-8` in float64, `1000 eps = 1.2e-4`
+        in float32. An explicit value below `10 eps` is warned about (round-off
+        alone may exceed it).
     - `args`: parameters, passed last to every user function (traced).
     - `solver`: any diffrax ODE solver, or a
         [`constrained_jax.VariationalIntegrator`][] (symplectic, fixed step `dt0`,
@@ -160,6 +170,12 @@ def simulate(
     - `stabilization`: `Unstabilized()`, `Baumgarte(alpha, beta)` or `Projection()`.
     - `stepsize_controller`, `dt0`, `max_steps`, `adjoint`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
+        `stepsize_controller=None` (default) is
+        `diffrax.PIDController(rtol=tol, atol=tol)` with `tol` following the dtype
+        of `q0`: `1e-8` in float64, `100 eps = 1.2e-5` in float32 (where `1e-8`
+        cannot be met). An explicit `PIDController` whose `rtol` and `atol` are
+        both below `4 eps` of the dtype is warned about (the run would stop at
+        `max_steps`), not changed.
     - `saveat`: a [`constrained_jax.SaveAt`][].
     - `progress_meter`: diffrax's progress meter for a long single run, e.g.
         `diffrax.TqdmProgressMeter()` (a bar per phase when a `Unilateral`
@@ -237,6 +253,9 @@ def simulate(
     q0 = inexact_asarray(q0)
     dtype = q0.dtype
     qd0 = jnp.asarray(qd0, dtype)
+    stepsize_controller, consistency_tol = _dtype_defaults(
+        stepsize_controller, consistency_tol, dtype
+    )
     return _simulate(
         system,
         jnp.asarray(t0, dtype),
@@ -305,6 +324,43 @@ def _time_grid_ok(t0, t1, ts, unilateral):
     if unilateral:
         ok = ok & (t1 >= t0)
     return ok
+
+
+def _dtype_defaults(stepsize_controller, consistency_tol, dtype):
+    """The defaults that follow the dtype, and a warning for explicit tolerances
+    that the dtype cannot reach."""
+    eps = float(jnp.finfo(dtype).eps)
+    if stepsize_controller is None:
+        tol = float_tolerance(*SIMULATE_TOLERANCE, dtype)
+        stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+    elif isinstance(stepsize_controller, diffrax.PIDController):
+        try:
+            rtol = float(stepsize_controller.rtol)
+            atol = float(stepsize_controller.atol)
+        except (TypeError, jax.errors.ConcretizationTypeError):
+            rtol = atol = None  # traced tolerances: not checked
+        if rtol is not None and max(rtol, atol) < 4 * eps:
+            warnings.warn(
+                f"`stepsize_controller` has rtol={rtol:g}, atol={atol:g}, below what "
+                f"{dtype} can reach (4 eps = {4 * eps:.1e}): the error estimate is "
+                "round-off, and the run will likely stop at `max_steps`. Loosen the "
+                "tolerances, leave `stepsize_controller` to its default (it follows "
+                "the dtype), or enable float64 with "
+                "`jax.config.update('jax_enable_x64', True)`.",
+                UserWarning,
+                stacklevel=3,
+            )
+    if consistency_tol is None:
+        consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
+    elif isinstance(consistency_tol, (int, float)) and consistency_tol < 10 * eps:
+        warnings.warn(
+            f"`consistency_tol={consistency_tol:g}` is below what {dtype} can check "
+            f"(10 eps = {10 * eps:.1e}): a consistent initial state may be rejected. "
+            "Leave it to its default (`None`, it follows the dtype).",
+            UserWarning,
+            stacklevel=3,
+        )
+    return stepsize_controller, consistency_tol
 
 
 class Release(eqx.Module):
@@ -625,9 +681,11 @@ def _simulate(
             return group.sign * lam[row]
 
         at_start = contact_force(t0, (q0, qd0), args) < 0
+        # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
+        root_tol = float_tolerance(1e-12, 100.0, q0.dtype)
         release_event = diffrax.Event(
             (contact_force, _diverged_condition(system, q0, t0, args)),
-            root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
+            root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
         )
         # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
         # phase if it already has the wrong sign).
@@ -673,7 +731,7 @@ def _simulate(
                     diverged_free,
                     lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
                 ),
-                root_finder=optx.Newton(rtol=1e-12, atol=1e-12),
+                root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
             )
         ts2 = jnp.clip(ts, t_rel, t1)
         saved2, end2, result2, stats2, mask2 = phase(

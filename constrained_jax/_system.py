@@ -11,7 +11,9 @@ expand, with `M = d^2 L / dqdot^2` and `c = (dp/dq) qdot + dp/dt - dL/dq`
     [[M, -A^T], [A, 0]] [qddot; lambda] = [Q - c; -(Adot qdot + adot)].
 
 `M` may be singular (a massless direction) as long as the KKT matrix is not, i.e. `M`
-is positive definite on the null space of `A`. The force of constraint is
+is positive definite on the null space of `A`. A direction with no inertia that the
+constraints leave free and that no force acts on is a free gauge: its acceleration is
+set to zero (see `LagrangianSystem.accelerations`). The force of constraint is
 `Q^c = A^T lambda`.
 """
 
@@ -208,7 +210,9 @@ class LagrangianSystem(eqx.Module):
     ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
         """`(qddot, lambda, singular)`: the KKT solve without raising.
 
-        `singular` flags a singular KKT matrix (then `qddot`, `lambda` are zeros).
+        `singular` flags a KKT system without a solution (then `qddot`, `lambda` are
+        zeros); free gauge directions (no inertia, no force) are not singular, their
+        accelerations are zero (see `accelerations`).
         The solve is `self.linear_solver`'s (by default the range-space method,
         unrolled so that XLA fuses it: on CPU a LAPACK call on such a small matrix
         costs more than its arithmetic). `bias_correction` (shape `(k,)`) is added to
@@ -226,9 +230,20 @@ class LagrangianSystem(eqx.Module):
         `[[M, -A^T], [A, 0]] [qddot; lambda] = [Q - c; -(Adot qdot + adot)]`, in the
         convention `d/dt(dL/dqdot) - dL/dq = A^T lambda + Q`.
 
-        Raises (at run time, also under `jit`) if the KKT matrix is singular: `L` is
-        not regular in a velocity direction the constraints leave free, or the
-        constraints are redundant.
+        **Free gauge directions.** A velocity direction `v` with no inertia
+        (`M v = 0`) that the constraints leave free (`A v = 0`) makes the KKT matrix
+        singular. If no force acts along it (`(Q - c) . v = 0` to round-off), the
+        equations hold whatever its acceleration: it is a free gauge, and its
+        acceleration is set to zero (the unknown at the vanishing pivot of the
+        elimination is 0; for a massless coordinate, e.g. the spin `theta2` of the
+        rolling cylinder with `I = 0` after it lets go, `qddot` of that coordinate is
+        0, so its velocity is held). See
+        [`constrained_jax.AbstractSaddlePointSolver`][].
+
+        Raises (at run time, also under `jit`) if the equations have no solution or
+        no unique multipliers: a force acts along a direction without inertia that
+        the constraints leave free (e.g. a massless coordinate with a potential
+        gradient), or the constraints are redundant.
         """
         q, qd = inexact_asarray(q), inexact_asarray(qd)
         self.check(q, qd, t, args)
@@ -236,10 +251,13 @@ class LagrangianSystem(eqx.Module):
         qdd, lam = eqx.error_if(
             (qdd, lam),
             singular,
-            "The KKT matrix [[M, -A^T], [A, 0]] is singular: the Lagrangian is not "
-            "regular in a velocity direction that the constraints leave free (M is "
-            "singular on the null space of A), or the constraints are redundant. "
-            "Check the mass matrix and remove dependent constraints.",
+            "The KKT matrix [[M, -A^T], [A, 0]] is singular and the equations of "
+            "motion have no solution: a force acts along a velocity direction that "
+            "has no inertia and that the constraints leave free (M is singular on "
+            "the null space of A, e.g. a massless coordinate with a potential "
+            "gradient), or the constraints are redundant. (A direction with no "
+            "inertia and no force is a free gauge and gets zero acceleration.) Check "
+            "the mass matrix and the forces, and remove dependent constraints.",
         )
         return qdd, lam
 

@@ -219,10 +219,14 @@ def test_pfaffian_of_wrong_shape():
 
 
 def test_singular_kkt_matrix_raises():
-    """L has no kinetic term in y and no constraint fixes y: not regular."""
+    """L has no kinetic term in y and no constraint fixes y: where the force -2y on y
+    is nonzero there is no solution; where it vanishes (y = 0) y is a free gauge and
+    gets zero acceleration."""
     system = cjax.LagrangianSystem(lambda q, qd, t, a: 0.5 * qd[0] ** 2 - q[1] ** 2)
     with pytest.raises(eqx.EquinoxRuntimeError, match="singular"):
-        system.accelerations(jnp.zeros(2), jnp.zeros(2), 0.0)
+        system.accelerations(jnp.array([0.0, 1.0]), jnp.zeros(2), 0.0)
+    qdd, _ = system.accelerations(jnp.zeros(2), jnp.zeros(2), 0.0)
+    np.testing.assert_array_equal(qdd, 0.0)
 
 
 def test_redundant_constraints_raise():

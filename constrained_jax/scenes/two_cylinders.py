@@ -26,7 +26,9 @@ and the normal force vanishes at the detachment angle
 from energy conservation.)
 
 With `alpha = 0` (`I = 0`) the mass matrix is singular, but the KKT matrix is not: the
-no-slip constraint fixes `theta2`.
+no-slip constraint fixes `theta2`. Once released (`contact_system`), nothing fixes
+`theta2` and nothing acts on it: a free gauge, whose acceleration is set to zero, so
+the spin rate at release is held while the centre flies as a projectile.
 """
 
 import jax
