@@ -63,3 +63,32 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The time grid of a fixed-step integration is invalid: `dt0` must be "
         "positive, `t0 <= t1`, and the save times nondecreasing within [t0, t1]."
     )
+    inconsistent_boundary = (
+        "The boundary values of the `Functional` violate its holonomic constraint: "
+        "G(y(xL), xL, args) or G(y(xR), xR, args) is not zero (beyond a few rounding "
+        "errors of the values). No curve from y(xL) to y(xR) can satisfy G = 0 on the "
+        "whole interval. Put the end points on the constraint surface, or fix G."
+    )
+    infeasible_constraints = (
+        "No function satisfying the integral constraints was found: the default "
+        "start (the straight line, corrected in smooth modes) could not satisfy "
+        "int N_j dx = C_j, and Newton's method did not converge. The values C_j may "
+        "be unattainable (a length shorter than the distance between the end "
+        "points, for instance). Check them, or pass a starting guess `y0` that "
+        "satisfies the constraints."
+    )
+    functional_singular_kkt = (
+        "The KKT matrix of the discretized functional is singular at the start or at "
+        "an iterate: F + lambda.N is flat along a direction the constraints leave "
+        "free, or an integral constraint's gradient vanishes (a length at a straight "
+        "line, G = g**2), or the stationary point is degenerate. Pass a different "
+        "starting guess `y0` to `solve_functional`, or check that the problem has an "
+        "isolated extremal."
+    )
+    functional_line_search_failed = (
+        "The line search on the KKT residual of the discretized functional could not "
+        "make progress: the iterate is far from any extremal, or the residual has a "
+        "local minimum that is not a solution. Pass a starting guess `y0` to "
+        "`solve_functional` nearer to the extremal you want (a coarser solve, or a "
+        "curve that satisfies the integral constraints)."
+    )
