@@ -597,10 +597,14 @@ def _primal_functional(inputs):
     """
     objective, constraints, solver, z0, args, n, max_steps, start_ok, homotopy = inputs
     residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
-    z, result, stats = solver.solve(residual, z0, args, max_steps, start_ok)
     if homotopy is None:
+        z, result, stats = solver.solve(residual, z0, args, max_steps, start_ok)
         return z, (result, stats)
-    r_line, num_holonomic_rows, start_found = homotopy
+    r_line, num_holonomic_rows, start_found, deep = homotopy
+    # A deep start (sag larger than twice the interval) goes to the continuation
+    # at once: Newton from it may converge to a spurious discrete extremal.
+    direct_ok = start_ok & jnp.invert(deep & start_found)
+    z, result, stats = solver.solve(residual, z0, args, max_steps, direct_ok)
     dtype = z0.dtype
     pad = jnp.zeros((n + num_holonomic_rows,), dtype)
 
@@ -637,16 +641,21 @@ def _primal_functional(inputs):
         return t_done_new, z_done_new, t_next, q_new, stage + 1, steps + num, finished
 
     one = jnp.ones((), dtype)
+    skipped = jnp.invert(direct_ok) & start_ok
     need = (
-        (result != RESULTS.successful)
+        (skipped | (result != RESULTS.successful))
         & (result != RESULTS.nonlinear_max_steps_reached)
         & start_ok
         & start_found
     )
-    init = (0 * one, z, 0.25 * one, 2 * one, jnp.array(0), stats["num_steps"], ~need)
+    t_first = jnp.where(skipped, 1 / 16, 1 / 4).astype(dtype)
+    init = (0 * one, z, t_first, 2 * one, jnp.array(0), stats["num_steps"], ~need)
     _, z_c, _, _, _, steps, finished = jax.lax.while_loop(cond, body, init)
     solved = need & finished
     z = jnp.where(solved, z_c, z)
+    result = RESULTS.where(
+        skipped & jnp.invert(solved), RESULTS.line_search_failed, result
+    )
     result = RESULTS.where(solved, RESULTS.successful, result)
     return z, (result, {**stats, "num_steps": steps})
 
@@ -894,7 +903,9 @@ def _solve_functional(functional, args, discretization, solver, y0, max_steps, t
         line_values = _line(problem)[1:-1].reshape(-1)
         r_line = _integral_constraints(line_values, full_args)
         continue_ok = start_found & jnp.invert(degenerate)
-        homotopy = _stop_gradient((r_line, num_holonomic_rows, continue_ok))
+        sag = jnp.max(jnp.abs(guess - _line(problem)))
+        deep = sag > 2 * (functional.interval[1] - functional.interval[0])
+        homotopy = _stop_gradient((r_line, num_holonomic_rows, continue_ok, deep))
     else:
         homotopy = None
     inputs = (
