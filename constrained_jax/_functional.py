@@ -757,14 +757,29 @@ def solve_functional(
         for `Chebyshev`, the linear-cost
         [`constrained_jax.BorderedBlockTridiagonal`][] for `PiecewiseLinear`).
     - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
-        or the values at the nodes, shape `(N,)` or `(N, n)`; by default the straight
-        line between the end values. Newton's method finds the extremal nearest to it.
+        or the values at the nodes, shape `(N,)` or `(N, n)`. Newton's method finds
+        the extremal nearest to it. By default the straight line between the end
+        values; with integral constraints, the line corrected in a few smooth modes
+        `sin(j pi s)` until it satisfies them (of the candidates, the one with the
+        lower `F`: the default start looks for the *minimizing* extremal; for a
+        functional to be maximised, such as Dido's area, pass `y0`). From the
+        default start, when Newton's method fails, or when the start sags more than
+        twice the interval, the solve continues in the constraint values from those
+        of the straight line to `C_j` (a sequence of Newton solves inside the same
+        compiled program; `stats["num_steps"]` counts all their steps). A user `y0`
+        overrides all this.
     - `max_steps`: the most Newton steps.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:**
 
-    A [`constrained_jax.FunctionalSolution`][].
+    A [`constrained_jax.FunctionalSolution`][]. Refusals: end values that violate
+    the holonomic constraint raise `ValueError` (concrete values) or report
+    `RESULTS.inconsistent_boundary` (traced); integral constraints that the default
+    start cannot satisfy and Newton's method does not solve report
+    `RESULTS.infeasible_constraints`; a constraint met only by the straight line
+    where its gradient vanishes (a length equal to the chord) reports
+    `RESULTS.redundant_constraints`.
 
     Differentiable with respect to `args` and to arrays in `functional` (implicit
     function theorem on the discrete KKT system; one more linear solve per backward
