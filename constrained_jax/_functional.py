@@ -701,6 +701,8 @@ def _check_boundary(functional, args) -> None:
         violation, tol = _boundary_violation(functional, args)
     except Exception:
         return  # bad structure: reported by the solve with its own message
+    if violation.ndim != 2 or violation.shape[1] >= functional.num_components:
+        return  # too many constraints (m >= n): reported by the solve
     violation, tol = np.asarray(violation), np.asarray(tol)
     if not np.all(np.isfinite(violation)):
         return  # non-finite values: `RESULTS.invalid_input`
