@@ -241,25 +241,8 @@ def _program_rotating_hoop():
 
 
 def _program_catenary():
-    """Chebyshev(48) started from the scene's parabola. (The scene's `solve` first
-    solves on a 201-node mesh, which only deep sags need: one program more.)"""
-
-    def run(xl, yl, xr, yr, length, rho_g):
-        import constrained_jax as cjax
-        from constrained_jax.scenes import catenary
-
-        return cjax.solve_functional(
-            catenary.functional(xl, yl, xr, yr),
-            {"rho_g": rho_g, "length": length},
-            discretization=cjax.Chebyshev(48),
-            y0=catenary.initial_guess(xl, yl, xr, yr, length),
-            throw=False,
-        )
-
-    return run
-
-
-def _program_catenary_deep():
+    """Chebyshev(48) from `solve_functional`'s default start (the scene's `solve`),
+    deep sags included."""
     from .scenes import catenary
 
     return lambda *values: catenary.solve(*values, throw=False)
@@ -293,7 +276,6 @@ def _make_program(name: str) -> Callable:
         "rolling_disk": _program_rolling_disk,
         "rotating_hoop": _program_rotating_hoop,
         "catenary": _program_catenary,
-        "catenary deep": _program_catenary_deep,
         "dido": _program_dido,
         "sphere_geodesic": _program_sphere_geodesic,
     }
@@ -681,10 +663,7 @@ def _catenary(
         return rows, {"catenary.png": draw}
 
     inputs = _arrays(xl, yl, xr, yr, length, rho_g)
-    # Newton from the parabola converges for ropes up to ~10 times the chord (tried
-    # up to 10); deeper sags start from a mesh solution, as the scene's `solve`.
-    deep = length > 10 * math.hypot(xr - xl, yr - yl)
-    return [_Job(label, "catenary deep" if deep else "catenary", inputs, finish)]
+    return [_Job(label, "catenary", inputs, finish)]
 
 
 def _dido(a: float = 1.0, length: float = 2.5) -> list[_Job]:
@@ -869,7 +848,6 @@ def _draw_work_precision(records):
 # first and the threads finish together.
 _COMPILE_ORDER = [
     "two_cylinders",
-    "catenary deep",
     "catenary",
     "rolling_disk",
     "pendulum variational",

@@ -26,13 +26,14 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import lineax as lx
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._custom_types import Args, Scalar
 from ._discretization import AbstractDiscretization, Chebyshev
-from ._extremize import _primal, _rewrite
-from ._implicit import implicit_jvp
+from ._implicit import implicit_jvp, nan_tangent_where
 from ._kkt import AbstractKKTSolver, kkt_residual, Newton
 from ._linalg import dense_factor, dense_solve
 from ._misc import all_finite, as_traced_args, check_max_steps
@@ -374,6 +375,354 @@ def _constraints(x_flat, args):
     return jnp.concatenate(parts)
 
 
+# ---------------------------------------------------------------------------------
+# The default start, continuation, boundary consistency
+# ---------------------------------------------------------------------------------
+
+
+_START_MODES = 4
+"""Smooth modes `sin(j pi s)` per function, beyond one per integral constraint, in
+which the default start corrects the straight line."""
+
+_START_ITERATIONS = 40
+"""Gauss-Newton iterations of the search for a feasible default start."""
+
+_CONTINUATION_STAGES = 24
+"""The most Newton solves of the continuation in the constraint values."""
+
+
+def _stop_gradient(tree):
+    return jtu.tree_map(
+        lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree
+    )
+
+
+def _line(problem):
+    """The straight line between the end values at the nodes, shape `(N, n)`."""
+    nodes = problem.discretization.nodes(problem.functional.interval)
+    yl, yr = problem.functional.boundary
+    n = problem.functional.num_components
+    s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
+    return yl.reshape(1, n) + s[:, None] * (yr - yl).reshape(1, n)
+
+
+class _Modes(eqx.Module):
+    """The straight line corrected in smooth modes: `line + sum_j u_j sin(j pi s) /
+    j^2` in every function, and the integral residuals `int N - C + offset` as
+    functions of the amplitudes `u` (shape `(J n,)`, mode-major)."""
+
+    full_args: Any
+    offset: Array
+    line: Array
+    basis: Array
+
+    def __init__(self, full_args, offset):
+        problem, _ = full_args
+        functional = problem.functional
+        k = len(functional.integral_constraints)
+        self.full_args = full_args
+        self.offset = offset
+        self.line = _line(problem)
+        nodes = problem.discretization.nodes(functional.interval)
+        dtype = self.line.dtype
+        s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
+        j = jnp.arange(1, k + _START_MODES + 1, dtype=dtype)
+        self.basis = jnp.sin(jnp.pi * s[:, None] * j[None, :]) / j**2  # (N, J)
+
+    @property
+    def size(self) -> int:
+        return self.basis.shape[1] * self.line.shape[1]
+
+    def values(self, u):
+        return self.line + self.basis @ u.reshape(self.basis.shape[1], -1)
+
+    def residual(self, u):
+        x_flat = self.values(u)[1:-1].reshape(-1)
+        return _integral_constraints(x_flat, self.full_args) + self.offset
+
+    def objective(self, u):
+        return _objective(self.values(u)[1:-1].reshape(-1), self.full_args)
+
+    def scales(self):
+        """`(scale of each residual, amplitude a)`: `|C| + |int N[line]|` (1 where
+        both vanish), and a tenth of the size of the problem."""
+        problem, user_args = self.full_args
+        functional = problem.functional
+        dtype = self.line.dtype
+        targets = jnp.stack(
+            [c.target(user_args, dtype) for c in functional.integral_constraints]
+        )
+        r_line = self.residual(jnp.zeros((self.size,), dtype))
+        scale = jnp.abs(targets - self.offset) + jnp.abs(r_line + targets - self.offset)
+        scale = jnp.where(scale > 0, scale, 1.0)
+        (xl, xr), (yl, yr) = functional.interval, functional.boundary
+        size = jnp.maximum(xr - xl, jnp.max(jnp.abs(jnp.stack([yl, yr]))))
+        return scale, 0.1 * size
+
+
+def _degenerate_at_line(full_args):
+    """Whether an integral constraint holds at the straight line, to rounding, with
+    a gradient that vanishes there (a length equal to the distance between the
+    ends): the line is then the only feasible function and has no multiplier.
+
+    Judged in the smooth modes of `_Modes`: `|int N_j[line] - C_j| <= 100 eps s_j`
+    and `|d(int N_j)/du| a <= sqrt(eps) s_j`, with `s_j` and `a` from `_Modes.scales`.
+    """
+    problem, _ = full_args
+    k = len(problem.functional.integral_constraints)
+    modes = _Modes(full_args, jnp.zeros((k,), problem.functional.boundary[0].dtype))
+    dtype = modes.line.dtype
+    eps = jnp.finfo(dtype).eps
+    zero = jnp.zeros((modes.size,), dtype)
+    scale, amplitude = modes.scales()
+    r_line = modes.residual(zero)
+    jac = jax.jacfwd(modes.residual)(zero)
+    flat = jnp.max(jnp.abs(jac), axis=1) * amplitude <= jnp.sqrt(eps) * scale
+    met = jnp.abs(r_line) <= 100 * eps * scale
+    return jnp.any(flat & met)
+
+
+def _feasible_start(full_args, offset):
+    """The default start: the straight line, corrected to satisfy the integral
+    constraints `int N_j dx = C_j - offset_j`.
+
+    The correction lives in the span of the smooth modes `sin(j pi s)` (`s` in
+    `[0, 1]` along the interval, `j = 1..J`, `J = k + _START_MODES`) of every
+    function, weighted by `1 / j^2` so that the search prefers the lowest modes. The
+    line itself is no start when an integral constraint is even in the correction (a
+    length): its gradient vanishes there and the KKT matrix is singular. So the
+    search starts at a finite amplitude `+a` and `-a` of the first mode of every
+    function (`a` a tenth of the size of the problem) and runs damped Gauss-Newton
+    (minimum-norm steps) on the integral residuals. Of the starts that become
+    feasible the one with the lower objective is kept: the default start looks for
+    the minimizing extremal. Where the first mode alone cannot satisfy the
+    constraints (`int y^2 = 1` with `int y sin(pi x) = 0`), the search starts again
+    from `+-a (1, 1/2, ..., 1/J)` in the modes.
+
+    Returns `(values, feasible)`: the nodal values `(N, n)` and whether the search
+    satisfied the integral constraints (to `sqrt(eps)` of their scale).
+    """
+    modes = _Modes(full_args, offset)
+    dtype = modes.line.dtype
+    n = modes.line.shape[1]
+    num_modes = modes.basis.shape[1]
+    eps = jnp.finfo(dtype).eps
+    residual, objective = modes.residual, modes.objective
+    scale, amplitude = modes.scales()
+    norm = lambda r: jnp.max(jnp.abs(r) / scale)
+    done_tol = 100 * eps
+    feasible_tol = jnp.sqrt(eps)
+
+    def search(u0):
+
+        def cond(carry):
+            _, r, it, stuck = carry
+            return (norm(r) > done_tol) & (it < _START_ITERATIONS) & jnp.invert(stuck)
+
+        def body(carry):
+            u, r, it, _ = carry
+            jac = jax.jacfwd(residual)(u)
+            du = -jnp.linalg.pinv(jac) @ r
+            du = jnp.where(jnp.all(jnp.isfinite(du)), du, 0.0)
+            r_norm = norm(r)
+            sufficient = lambda alpha, r_new: norm(r_new) <= (1 - alpha / 4) * r_norm
+
+            def ls_cond(c):
+                alpha, r_new, tries = c
+                return jnp.invert(sufficient(alpha, r_new)) & (tries < 30)
+
+            def ls_body(c):
+                alpha, _, tries = c
+                alpha = alpha / 2
+                return alpha, residual(u + alpha * du), tries + 1
+
+            one = jnp.ones((), dtype)
+            alpha, r_new, _ = jax.lax.while_loop(
+                ls_cond, ls_body, (one, residual(u + du), jnp.array(0))
+            )
+            ok = sufficient(alpha, r_new)
+            u = jnp.where(ok, u + alpha * du, u)
+            r = jnp.where(ok, r_new, r)
+            return u, r, it + 1, jnp.invert(ok)
+
+        u, r, _, _ = jax.lax.while_loop(
+            cond, body, (u0, residual(u0), jnp.array(0), jnp.array(False))
+        )
+        return u, norm(r) <= feasible_tol, objective(u), norm(r)
+
+    first = jnp.zeros((num_modes, n), dtype).at[0].set(1.0)
+    generic = jnp.broadcast_to(
+        1 / jnp.arange(1, num_modes + 1, dtype=dtype)[:, None], (num_modes, n)
+    )
+    starts = amplitude * jnp.stack([first, -first, generic, -generic]).reshape(4, -1)
+    u, feasible, value, infeasibility = jax.vmap(search)(starts)
+    value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
+    infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
+    best = jnp.where(
+        jnp.any(feasible[:2]),
+        jnp.argmin(value[:2]),
+        jnp.where(
+            jnp.any(feasible[2:]), 2 + jnp.argmin(value[2:]), jnp.argmin(infeasibility)
+        ),
+    )
+    return modes.values(u[best]), feasible[best]
+
+
+def _start_multipliers(x_flat, full_args, num_holonomic_rows):
+    """Zero holonomic multipliers and the least-squares integral multipliers
+    `-(J J^T)^{-1} J grad F` at `x_flat`."""
+    problem, _ = full_args
+    dtype = x_flat.dtype
+    lam_hol = jnp.zeros((num_holonomic_rows,), dtype)
+    if problem.functional.integral_constraints:
+        grad0 = jax.grad(_objective)(x_flat, full_args)
+        jac = jax.jacrev(_integral_constraints)(x_flat, full_args)
+        factors = dense_factor(jac @ jac.T, unroll_max=12)
+        lam_int = -dense_solve(factors, jac @ grad0, unroll_max=12)
+        lam_int = jnp.where(jnp.all(jnp.isfinite(lam_int)), lam_int, 0.0)
+    else:
+        lam_int = jnp.zeros((0,), dtype)
+    return jnp.concatenate([lam_hol, lam_int])
+
+
+def _primal_functional(inputs):
+    """Newton from `z0`; if that fails from the default start, continuation in the
+    integral constraint values.
+
+    The continuation (only when `homotopy` is given: the default start, with integral
+    constraints) solves the problem with the targets `C_j(t) = N_j[line] + t (C_j -
+    N_j[line])`, between the values at the straight line (`t = 0`) and the requested
+    ones (`t = 1`): first at some `t` from the default start for those targets, then
+    with `t` growing by a factor `q` from each solution to the next (`q = 2`, square
+    rooted after a failure), until `t = 1`. For a rope that sags deeply this follows
+    the minimizing branch from a shallow sag, where Newton's method converges from
+    the default start, down to the requested length.
+    """
+    objective, constraints, solver, z0, args, n, max_steps, start_ok, homotopy = inputs
+    residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
+    if homotopy is None:
+        z, result, stats = solver.solve(residual, z0, args, max_steps, start_ok)
+        return z, (result, stats)
+    r_line, num_holonomic_rows, start_found, deep = homotopy
+    # A deep start (sag larger than twice the interval) goes to the continuation
+    # at once: Newton from it may converge to a spurious discrete extremal.
+    direct_ok = start_ok & jnp.invert(deep & start_found)
+    z, result, stats = solver.solve(residual, z0, args, max_steps, direct_ok)
+    dtype = z0.dtype
+    pad = jnp.zeros((n + num_holonomic_rows,), dtype)
+
+    def trial(t, z_start):
+        offset = -(1 - t) * r_line
+        shifted = lambda z_, a: residual(z_, a) + jnp.concatenate([pad, offset])
+        z_t, result_t, stats_t = solver.solve(
+            shifted, z_start, args, max_steps, start_ok
+        )
+        return z_t, result_t == RESULTS.successful, stats_t["num_steps"]
+
+    def fresh_start(t):
+        offset = -(1 - t) * r_line
+        values, _ = _feasible_start(args, offset)
+        x = values[1:-1].reshape(-1)
+        return jnp.concatenate([x, _start_multipliers(x, args, num_holonomic_rows)])
+
+    def cond(carry):
+        _, _, _, q, stage, _, finished = carry
+        return jnp.invert(finished) & (stage < _CONTINUATION_STAGES) & (q > 1.01)
+
+    def body(carry):
+        t_done, z_done, t_try, q, stage, steps, _ = carry
+        have = t_done > 0
+        z_start = jax.lax.cond(have, lambda: z_done, lambda: fresh_start(t_try))
+        z_t, ok, num = trial(t_try, z_start)
+        finished = ok & (t_try >= 1)
+        # After a failure: from the last solution, a smaller factor; before the first
+        # solution, a smaller t.
+        q_new = jnp.where(ok | jnp.invert(have), q, jnp.sqrt(q))
+        t_done_new = jnp.where(ok, t_try, t_done)
+        z_done_new = jnp.where(ok, z_t, z_done)
+        t_next = jnp.where(ok | have, jnp.minimum(1.0, t_done_new * q_new), t_try / 4)
+        return t_done_new, z_done_new, t_next, q_new, stage + 1, steps + num, finished
+
+    one = jnp.ones((), dtype)
+    skipped = jnp.invert(direct_ok) & start_ok
+    need = (
+        (skipped | (result != RESULTS.successful))
+        & (result != RESULTS.nonlinear_max_steps_reached)
+        & start_ok
+        & start_found
+    )
+    t_first = jnp.where(skipped, 1 / 16, 1 / 4).astype(dtype)
+    init = (0 * one, z, t_first, 2 * one, jnp.array(0), stats["num_steps"], ~need)
+    _, z_c, _, _, _, steps, finished = jax.lax.while_loop(cond, body, init)
+    solved = need & finished
+    z = jnp.where(solved, z_c, z)
+    result = RESULTS.where(
+        skipped & jnp.invert(solved), RESULTS.line_search_failed, result
+    )
+    result = RESULTS.where(solved, RESULTS.successful, result)
+    return z, (result, {**stats, "num_steps": steps})
+
+
+def _rewrite_functional(z, aux, inputs):
+    del aux
+    objective, constraints, _, _, args, n, _, _, _ = inputs
+    return kkt_residual(objective, constraints, z, args, n)
+
+
+def _boundary_violation(functional, args):
+    """`(|G| at both ends, tolerance)`, shape `(2, m)` each.
+
+    The tolerance is `64 eps (1 + |x| |dG/dx| + sum_i |y_i| |dG/dy_i|)` per row: a
+    few rounding errors of end values on the constraint surface.
+    """
+    holonomic = functional.holonomic
+    dtype = functional.boundary[0].dtype
+    eps = jnp.finfo(dtype).eps
+
+    def one_end(y, x):
+        g = lambda y_, x_: jnp.atleast_1d(holonomic(y_, x_, args)).astype(dtype)
+        value = g(y, x)
+        dg_dy, dg_dx = jax.jacfwd(g, argnums=(0, 1))(y, x)
+        dg_dy = dg_dy.reshape(value.shape[0], -1)
+        sensitivity = jnp.abs(dg_dy) @ jnp.abs(y).reshape(-1) + jnp.abs(dg_dx * x)
+        return jnp.abs(value), 64 * eps * (1 + sensitivity)
+
+    (xl, xr), (yl, yr) = functional.interval, functional.boundary
+    left, tol_left = one_end(yl, xl)
+    right, tol_right = one_end(yr, xr)
+    return jnp.stack([left, right]), jnp.stack([tol_left, tol_right])
+
+
+def _check_boundary(functional, args) -> None:
+    """Raise `ValueError` when concrete end values violate the holonomic constraint."""
+    if not isinstance(functional, Functional) or functional.holonomic is None:
+        return
+    leaves = jtu.tree_leaves((functional, args))
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+        return  # traced: `result` reports it instead
+    try:
+        violation, tol = _boundary_violation(functional, args)
+    except Exception:
+        return  # bad structure: reported by the solve with its own message
+    if violation.ndim != 2 or violation.shape[1] >= functional.num_components:
+        return  # too many constraints (m >= n): reported by the solve
+    violation, tol = np.asarray(violation), np.asarray(tol)
+    if not np.all(np.isfinite(violation)):
+        return  # non-finite values: `RESULTS.invalid_input`
+    bad = violation > tol
+    if np.any(bad):
+        end, row = (int(i[0]) for i in np.nonzero(bad))
+        which = ("y(xL)", "y(xR)")[end]
+        raise ValueError(
+            f"The end value {which} = {np.asarray(functional.boundary[end])} violates "
+            f"the holonomic constraint: |G_{row}| = {violation[end, row]:.3g} at "
+            f"x = {float(functional.interval[end])} (tolerance "
+            f"{tol[end, row]:.3g}). No curve between the end values can satisfy "
+            "G = 0 on the whole interval: put the end points on the constraint "
+            "surface, or fix G."
+        )
+
+
 def solve_functional(
     functional: Functional,
     args: Args = None,
@@ -415,8 +764,17 @@ def solve_functional(
         for `Chebyshev`, the linear-cost
         [`constrained_jax.BorderedBlockTridiagonal`][] for `PiecewiseLinear`).
     - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
-        or the values at the nodes, shape `(N,)` or `(N, n)`; by default the straight
-        line between the end values. Newton's method finds the extremal nearest to it.
+        or the values at the nodes, shape `(N,)` or `(N, n)`. Newton's method finds
+        the extremal nearest to it. By default the straight line between the end
+        values; with integral constraints, the line corrected in a few smooth modes
+        `sin(j pi s)` until it satisfies them (of the candidates, the one with the
+        lower `F`: the default start looks for the *minimizing* extremal; for a
+        functional to be maximised, such as Dido's area, pass `y0`). From the
+        default start, when Newton's method fails, or when the start sags more than
+        twice the interval, the solve continues in the constraint values from those
+        of the straight line to `C_j` (a sequence of Newton solves inside the same
+        compiled program; `stats["num_steps"]` counts all their steps). A user `y0`
+        overrides all this.
     - `max_steps`: the most Newton steps.
     - `rtol`, `atol`: the tolerance on the discretization error. The solution is
         `successful` only if the discretization's a-posteriori error estimate
@@ -436,13 +794,20 @@ def solve_functional(
 
     **Returns:**
 
-    A [`constrained_jax.FunctionalSolution`][].
+    A [`constrained_jax.FunctionalSolution`][]. Refusals: end values that violate
+    the holonomic constraint raise `ValueError` (concrete values) or report
+    `RESULTS.inconsistent_boundary` (traced); integral constraints that the default
+    start cannot satisfy and Newton's method does not solve report
+    `RESULTS.infeasible_constraints`; a constraint met only by the straight line
+    where its gradient vanishes (a length equal to the chord) reports
+    `RESULTS.redundant_constraints`.
 
     Differentiable with respect to `args` and to arrays in `functional` (implicit
     function theorem on the discrete KKT system; one more linear solve per backward
     pass). Composes with `jax.jit` and `jax.vmap`.
     """
     args = as_traced_args(args)
+    _check_boundary(functional, args)
     if (
         callable(y0)
         and isinstance(functional, Functional)
@@ -553,9 +918,15 @@ def _solve_functional(
         )
 
     # The starting guess.
-    if y0 is None:
-        s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
-        guess = yl.reshape(1, n) + s[:, None] * (yr - yl).reshape(1, n)
+    full_args = (problem, args)
+    default_start = y0 is None and k > 0
+    start_found = jnp.array(True)
+    if y0 is None and k == 0:
+        guess = _line(problem)
+    elif y0 is None:
+        # Satisfies the integral constraints where it can (see `_feasible_start`).
+        zero_offset = jnp.zeros((k,), dtype)
+        guess, start_found = _feasible_start(_stop_gradient(full_args), zero_offset)
     elif callable(y0):
         guess = jax.vmap(lambda x: jnp.asarray(y0(x), dtype).reshape(n))(nodes)
     else:
@@ -570,7 +941,6 @@ def _solve_functional(
 
     if solver is None:
         solver = Newton(linear_solver=discretization.linear_solver(n, m, k))
-    full_args = (problem, args)
     objective = eqx.filter_closure_convert(_objective, x0, full_args)
     has_constraints = m > 0 or k > 0
     constraints = (
@@ -580,19 +950,27 @@ def _solve_functional(
     )
 
     start_ok = all_finite((x0, args, functional))
+    boundary_ok = jnp.array(True)
+    if m > 0:
+        violation, tol = _boundary_violation(functional, args)
+        boundary_ok = jnp.all(violation <= tol) | jnp.invert(start_ok)
     x_safe = jnp.where(start_ok, x0, 0.0)
-    lam_hol = jnp.zeros(((num_nodes - 2) * m,), dtype)
-    if k > 0:
-        # Least-squares integral multipliers at the start: -(J J^T)^{-1} J grad F.
-        grad0 = jax.grad(_objective)(x_safe, full_args)
-        jac = jax.jacrev(_integral_constraints)(x_safe, full_args)
-        factors = dense_factor(jac @ jac.T, unroll_max=12)
-        lam_int = -dense_solve(factors, jac @ grad0, unroll_max=12)
-        lam_int = jnp.where(jnp.all(jnp.isfinite(lam_int)), lam_int, 0.0)
-    else:
-        lam_int = jnp.zeros((0,), dtype)
-    z0 = jax.lax.stop_gradient(jnp.concatenate([x0, lam_hol, lam_int]))
+    num_holonomic_rows = (num_nodes - 2) * m
+    lam0 = _start_multipliers(x_safe, _stop_gradient(full_args), num_holonomic_rows)
+    z0 = jax.lax.stop_gradient(jnp.concatenate([x_safe, lam0]))
 
+    degenerate = jnp.array(False)
+    if m == 0 and k > 0:
+        degenerate = _degenerate_at_line(_stop_gradient(full_args)) & start_ok
+    if default_start:
+        line_values = _line(problem)[1:-1].reshape(-1)
+        r_line = _integral_constraints(line_values, full_args)
+        continue_ok = start_found & jnp.invert(degenerate)
+        sag = jnp.max(jnp.abs(guess - _line(problem)))
+        deep = sag > 2 * (functional.interval[1] - functional.interval[0])
+        homotopy = _stop_gradient((r_line, num_holonomic_rows, continue_ok, deep))
+    else:
+        homotopy = None
     inputs = (
         objective,
         constraints,
@@ -601,11 +979,34 @@ def _solve_functional(
         full_args,
         num_unknowns,
         max_steps,
-        start_ok,
+        start_ok & boundary_ok,
+        homotopy,
     )
     z, (result, stats) = implicit_jvp(
-        _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
+        _primal_functional,
+        _rewrite_functional,
+        inputs,
+        frozenset({lx.symmetric_tag}),
+        solver.linear_solver,
     )
+    # Statuses in the words of this function.
+    result = RESULTS.where(
+        result == RESULTS.singular_kkt, RESULTS.functional_singular_kkt, result
+    )
+    result = RESULTS.where(
+        result == RESULTS.line_search_failed,
+        RESULTS.functional_line_search_failed,
+        result,
+    )
+    result = RESULTS.where(
+        (result != RESULTS.successful) & jnp.invert(start_found) & start_ok,
+        RESULTS.infeasible_constraints,
+        result,
+    )
+    result = RESULTS.where(degenerate, RESULTS.redundant_constraints, result)
+    result = RESULTS.where(boundary_ok, result, RESULTS.inconsistent_boundary)
+    # Failures decided after the solve have no derivative either (NaN, never raised).
+    z = nan_tangent_where(z, result != RESULTS.successful)
     x_flat = z[:num_unknowns]
     mu = z[num_unknowns : num_unknowns + (num_nodes - 2) * m]
     lam = z[num_unknowns + (num_nodes - 2) * m :]

@@ -99,12 +99,16 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "nodes or a `Graded` grid at that end; or pass a looser `rtol`/`atol`."
     )
     infeasible_constraints = (
-        "The constraints could not be satisfied: the iterates approach a point where "
-        "G != 0 but the constraint Jacobian J = dG/dx has lost rank, a stationary "
-        "point of |G|^2 (J^T G = 0) that is not a solution, so the linearised "
-        "constraints J dx = -G have no solution of reasonable size. The constraints "
-        "may be inconsistent (e.g. x.x + 1 = 0), or x0 lies in the basin of a local "
-        "minimum of |G|. Check that G = 0 has a solution, and start nearer to it."
+        "The constraints could not be satisfied. `extremize`: the iterates approach "
+        "a point where G != 0 but the constraint Jacobian J = dG/dx has lost rank, a "
+        "stationary point of |G|^2 (J^T G = 0) that is not a solution; the "
+        "constraints may be inconsistent (e.g. x.x + 1 = 0), or x0 lies in the basin "
+        "of a local minimum of |G|: check that G = 0 has a solution, and start "
+        "nearer to it. `solve_functional`: the default start (the straight line, "
+        "corrected in smooth modes) could not satisfy int N_j dx = C_j and Newton's "
+        "method did not converge; the values C_j may be unattainable (a length "
+        "shorter than the distance between the end points, for instance): check "
+        "them, or pass a starting guess `y0` that satisfies the constraints."
     )
     nonfinite_objective = (
         "F, G or their derivatives (gradient, constraint Jacobian, Hessian) are NaN "
@@ -113,4 +117,25 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "domain of F or G (e.g. the log or sqrt of a negative number) or on a "
         "singularity. Start inside the domain, or write F and G so that they are "
         "finite wherever the solver may step."
+    )
+    inconsistent_boundary = (
+        "The boundary values of the `Functional` violate its holonomic constraint: "
+        "G(y(xL), xL, args) or G(y(xR), xR, args) is not zero (beyond a few rounding "
+        "errors of the values). No curve from y(xL) to y(xR) can satisfy G = 0 on the "
+        "whole interval. Put the end points on the constraint surface, or fix G."
+    )
+    functional_singular_kkt = (
+        "The KKT matrix of the discretized functional is singular at the start or at "
+        "an iterate: F + lambda.N is flat along a direction the constraints leave "
+        "free, or an integral constraint's gradient vanishes (a length at a straight "
+        "line, G = g**2), or the stationary point is degenerate. Pass a different "
+        "starting guess `y0` to `solve_functional`, or check that the problem has an "
+        "isolated extremal."
+    )
+    functional_line_search_failed = (
+        "The line search on the KKT residual of the discretized functional could not "
+        "make progress: the iterate is far from any extremal, or the residual has a "
+        "local minimum that is not a solution. Pass a starting guess `y0` to "
+        "`solve_functional` nearer to the extremal you want (a coarser solve, or a "
+        "curve that satisfies the integral constraints)."
     )

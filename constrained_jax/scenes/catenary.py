@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._discretization import AbstractDiscretization, Chebyshev, PiecewiseLinear
+from .._discretization import AbstractDiscretization, Chebyshev
 from .._functional import (
     Functional,
     FunctionalSolution,
@@ -199,26 +199,22 @@ def solve(
     discretization: AbstractDiscretization = Chebyshev(48),
     throw: bool = True,
 ) -> FunctionalSolution:
-    """Hang the rope with the library, starting from `initial_guess`.
+    """Hang the rope with the library, from `solve_functional`'s default start.
 
-    A spectral discretization starts from a 201-node `PiecewiseLinear` solve (itself
-    started from the parabola): for deep sags (length 20 times the chord) Newton's
-    method on a polynomial started from the parabola fails to converge, while on the
-    mesh it does not. Works under `jax.jit` and `jax.vmap` (all inputs traced).
+    The default start corrects the straight line in smooth modes until it has the
+    rope's length and hangs down (the lower of the two candidates), and continues
+    in the length from a shallow sag when Newton's method does not converge from
+    it directly (deep sags, 20 or 50 times the chord). Works under `jax.jit` and
+    `jax.vmap` (all inputs traced).
 
     Raises `ValueError` (for concrete values) if the rope is not longer than the
-    chord.
+    chord; traced, the solver reports `RESULTS.infeasible_constraints` (or, for a
+    rope exactly as long as the chord, `RESULTS.redundant_constraints`).
     """
     _check_length(xl, yl, xr, yr, length)
     args = {"rho_g": jnp.asarray(rho_g, float), "length": jnp.asarray(length, float)}
-    fun = functional(xl, yl, xr, yr)
-    guess = initial_guess(xl, yl, xr, yr, length)
-    if not isinstance(discretization, PiecewiseLinear):
-        guess = solve_functional(
-            fun, args, discretization=PiecewiseLinear(201), y0=guess, throw=False
-        )
     return solve_functional(
-        fun, args, discretization=discretization, y0=guess, throw=throw
+        functional(xl, yl, xr, yr), args, discretization=discretization, throw=throw
     )
 
 
