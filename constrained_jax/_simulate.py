@@ -446,6 +446,23 @@ def _diverged_condition(system, q_ref, t_ref, args):
     return condition
 
 
+def _fix_scan_kind(solver, adjoint):
+    """Set a Runge-Kutta solver's `scan_kind` before wrapping it.
+
+    diffrax's adjoints set `scan_kind` (for forward-mode autodiff through the stages)
+    on a Runge-Kutta solver whose `scan_kind` is `None`, with `eqx.tree_at`; diffrax
+    forwards `isinstance` through a wrapped solver, so it would try that on our
+    wrapper, which has no such field. Setting it on the inner solver, as the adjoint
+    would, keeps the wrapper out of it (the wrappers forward `scan_kind`)."""
+    rk = (diffrax.AbstractRungeKutta, diffrax.AbstractSRK)
+    if isinstance(solver, rk) and getattr(solver, "scan_kind", "") is None:
+        kind = "lax" if isinstance(adjoint, diffrax.ForwardMode) else "bounded"
+        solver = eqx.tree_at(
+            lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None
+        )
+    return solver
+
+
 class _WatchedSolver(diffrax.AbstractWrappedSolver):
     """The attached phase's solver: samples the watched multiplier inside each step.
 
@@ -478,6 +495,10 @@ class _WatchedSolver(diffrax.AbstractWrappedSolver):
     @property
     def root_finder(self):
         return self.solver.root_finder  # pyright: ignore
+
+    @property
+    def scan_kind(self):
+        return getattr(self.solver, "scan_kind", None)
 
     @property
     def interpolation_cls(self):  # pyright: ignore
@@ -554,6 +575,9 @@ def _run_phase(
     `event` is a tuple of condition functions (the phase's own, if any, then the
     divergence check); `watch`, if given, is the multiplier the attached phase
     samples inside each step (`_WatchedSolver`)."""
+    wrapped = isinstance(stabilization, Projection) or watch is not None
+    if wrapped:
+        solver = _fix_scan_kind(solver, adjoint)
     if isinstance(stabilization, Projection):
         solver = resolve_implicit_tolerances(solver, stepsize_controller)
         solver = ProjectedSolver(solver, system, stabilization.iterations)

@@ -122,6 +122,10 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
         return self.solver.term_structure
 
     @property
+    def scan_kind(self):
+        return getattr(self.solver, "scan_kind", None)
+
+    @property
     def root_finder(self):
         # diffrax forwards `isinstance(..., AbstractImplicitSolver)` to the wrapped
         # solver and then reads `root_finder`; `simulate` has already filled in its
