@@ -229,7 +229,9 @@ def test_fit_divergence_under_vmap_is_per_member():
             throw=False,
         )
     )(curvature)
-    np.testing.assert_array_equal(res.result == cjax.RESULTS.fit_diverged, [True, False])
+    np.testing.assert_array_equal(
+        res.result == cjax.RESULTS.fit_diverged, [True, False]
+    )
     np.testing.assert_array_equal(res.result == cjax.RESULTS.successful, [False, True])
     np.testing.assert_array_equal(res.params[0], np.zeros(2))
     np.testing.assert_allclose(res.params[1], 1.0 - 0.7**60, rtol=1e-12)
