@@ -36,7 +36,12 @@ from ._discretization import AbstractDiscretization, Chebyshev
 from ._implicit import implicit_jvp, nan_tangent_where
 from ._kkt import AbstractKKTSolver, kkt_residual, Newton
 from ._linalg import dense_factor, dense_solve
-from ._misc import all_finite, as_traced_args, check_max_steps
+from ._misc import (
+    all_finite,
+    as_traced_args,
+    check_max_steps,
+    default_float_dtype,
+)
 from ._results import RESULTS
 
 
@@ -832,6 +837,9 @@ def _error_tolerance(discretization, rtol, atol):
             if isinstance(discretization, AbstractDiscretization)
             else 0.0
         )
+        # In float32 the coefficient tail sits at round-off near 1e-4: a default
+        # tolerance below what the precision can certify would refuse every solve.
+        rtol = max(rtol, 3000 * float(jnp.finfo(default_float_dtype()).eps))
     if atol is None:
         atol = 0.0
     out = []
