@@ -1,0 +1,55 @@
+"""The tour: every built-in scene solved and checked against its closed form, with
+its pictures (`python -m constrained_jax tour`).
+
+One module per scene declares it once (`SCENE`: its parameters with their defaults,
+its compiled programs, its checks and pictures); this registry lists them in the
+order of the table. Adding a scene: write `tour/<name>.py` with its `SCENE` and add
+it to `SCENES` below. The library never imports the tour.
+"""
+
+from dataclasses import replace
+
+from . import (
+    catenary,
+    cylinder_volume,
+    dido,
+    pendulum,
+    rolling_disk,
+    rotating_hoop,
+    sphere_geodesic,
+    two_cylinders,
+)
+from ._entry import (
+    Check as Check,
+    Job as Job,
+    Param as Param,
+    print_table as print_table,
+    Program as Program,
+    Row as Row,
+    save as save,
+    Scene as Scene,
+)
+from .work_precision import WorkPrecision as WorkPrecision
+
+
+SCENES: dict[str, Scene] = {
+    module.SCENE.name: module.SCENE
+    for module in (
+        cylinder_volume,
+        pendulum,
+        two_cylinders,
+        rolling_disk,
+        rotating_hoop,
+        catenary,
+        dido,
+        sphere_geodesic,
+    )
+}
+
+
+def tour_jobs() -> list[Job]:
+    """Every scene on its defaults, then the cylinder on a badly scaled budget
+    (without its picture)."""
+    jobs = [job for scene in SCENES.values() for job in scene.jobs()]
+    badly_scaled = SCENES["cylinder_volume"].jobs(b=1e-3, l=1e3)
+    return jobs + [replace(job, draw=False) for job in badly_scaled]

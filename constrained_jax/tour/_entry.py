@@ -1,0 +1,209 @@
+"""What a tour entry declares (`Scene`, its `Job`s and their `Program`s) and what
+the entries share: the rows of the table (`Check`, `Row`), the table itself and the
+pictures' figure."""
+
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import diffrax
+import jax.numpy as jnp
+
+import constrained_jax as cjax
+
+
+@dataclass(frozen=True)
+class Check:
+    """A computed number against its closed form, within `tolerance` on the relative
+    error; `scale` divides the error where the closed form vanishes."""
+
+    quantity: str
+    computed: Any
+    reference: Any
+    tolerance: float
+    scale: float | None = None
+
+
+@dataclass(frozen=True)
+class Row:
+    """One line of the table: a `Check` of the scene `scene`, solved in `seconds`."""
+
+    scene: str
+    quantity: str
+    computed: float
+    reference: float
+    tolerance: float
+    seconds: float
+    scale: float | None = None  # for a closed form that vanishes
+
+    @property
+    def rel_error(self) -> float:
+        scale = abs(self.reference) if self.scale is None else self.scale
+        return abs(self.computed - self.reference) / max(scale, 1e-300)
+
+    @property
+    def passed(self) -> bool:
+        # A NaN compares False: it never passes.
+        return self.rel_error <= self.tolerance
+
+
+@dataclass(eq=False)
+class Program:
+    """A compiled function, built once per process: a second run with other inputs
+    (traced) does not recompile. Jobs may share one.
+
+    **Arguments:**
+
+    - `name`: how the compilation times name it.
+    - `make`: returns the function to compile.
+    - `compile_cost`: its measured compilation time, relative: the tour compiles the
+        costliest first, so that the threads finish together (unmeasured: 0, last).
+    """
+
+    name: str
+    make: Callable[[], Callable]
+    compile_cost: float = 0.0
+
+    @cached_property
+    def fn(self) -> Callable:
+        import equinox as eqx
+
+        return eqx.filter_jit(self.make())
+
+
+Pictures = dict[str, Callable]  # file name -> draws on a matplotlib Figure
+
+
+@dataclass
+class Job:
+    """One compiled solve and its checks.
+
+    `finish(out, seconds)` returns the checks of the program's output and its
+    pictures; `label` names the rows (the scene and its changed parameters) and the
+    warning if the solver reports a failure (`out.result`).
+    """
+
+    label: str
+    program: Program
+    inputs: tuple
+    finish: Callable[[Any, float], tuple[list[Check], Pictures]]
+    repeats: int = 3
+    draw: bool = True  # keep its pictures
+
+    def rows(self, out, seconds: float) -> tuple[list[Row], Pictures]:
+        """The finished checks as rows; warns when the solver reports a failure (it
+        shows up in the checks as a wrong number or NaN, too)."""
+        if out.result != cjax.RESULTS.successful:
+            print(f"warning: {self.label}: {cjax.RESULTS[out.result]}", file=sys.stderr)
+        checks, pictures = self.finish(out, seconds)
+        rows = [
+            Row(
+                self.label,
+                c.quantity,
+                float(c.computed),
+                float(c.reference),
+                c.tolerance,
+                seconds,
+                c.scale,
+            )  # fmt: skip
+            for c in checks
+        ]
+        return rows, pictures
+
+
+@dataclass(frozen=True)
+class Param:
+    """A scene's parameter: its default and what it is."""
+
+    default: float
+    help: str
+
+
+@dataclass(frozen=True)
+class Scene:
+    """One scene of the tour, declared once.
+
+    **Arguments:**
+
+    - `name`: the command line's `scene NAME`.
+    - `doc`: one sentence: what is solved and checked.
+    - `params`: name -> `Param`, in the order `--help` lists them.
+    - `build`: `build(label, **values) -> list[Job]`, every parameter given; raises
+        `ValueError` with the reason for impossible parameters.
+    - `picture`: what its picture shows (for `tour --help`), if it draws one.
+    """
+
+    name: str
+    doc: str
+    params: dict[str, Param]
+    build: Callable[..., list[Job]]
+    picture: str = ""
+
+    def label(self, values: dict) -> str:
+        """The name, with the parameters that differ from their defaults."""
+        changed = {k: v for k, v in values.items() if v != self.params[k].default}
+        if not changed:
+            return self.name
+        return f"{self.name}({', '.join(f'{k}={v:g}' for k, v in changed.items())})"
+
+    def jobs(self, **values: float) -> list[Job]:
+        """The jobs on these parameters (the others at their defaults)."""
+        values = {k: values.get(k, p.default) for k, p in self.params.items()}
+        label = self.label(values)
+        try:
+            return self.build(label, **values)
+        except ValueError as e:
+            raise SystemExit(f"{label}: {e}") from None
+
+
+def arrays(*values) -> tuple:
+    return tuple(jnp.asarray(v, float) for v in values)
+
+
+def simulate(system, t1, q0, qd0, args, saveat, **kwargs) -> cjax.Trajectory:
+    """`cjax.simulate` from 0 to `t1` at rtol = atol = 1e-10 (or `kwargs`), failures
+    reported in `result`."""
+    kwargs.setdefault(
+        "stepsize_controller", diffrax.PIDController(rtol=1e-10, atol=1e-10)
+    )
+    return cjax.simulate(
+        system, (0.0, t1), q0, qd0, args, saveat=saveat, throw=False, **kwargs
+    )
+
+
+def print_table(rows: list[Row]) -> bool:
+    """One line per row, columns separated by at least two spaces; whether every
+    check passed."""
+    width = max(len("scene"), *(len(row.scene) for row in rows))
+    qwidth = max(len(row.quantity) for row in rows)
+    header = (
+        f"{'scene':<{width}}  {'quantity':<{qwidth}}  {'computed':>17}  "
+        f"{'closed form':>17}  {'rel. error':>10}  {'tolerance':>9}  {'time [s]':>9}  "
+        "check"
+    )
+    print(header)
+    print("-" * len(header))
+    ok = True
+    for row in rows:
+        ok &= row.passed
+        print(
+            f"{row.scene:<{width}}  {row.quantity:<{qwidth}}  {row.computed:>17.11g}  "
+            f"{row.reference:>17.11g}  {row.rel_error:>10.2e}  {row.tolerance:>9.0e}  "
+            f"{row.seconds:>9.4f}  {'ok' if row.passed else 'FAIL'}"
+        )
+    return ok
+
+
+def save(out: Path, name: str, draw: Callable) -> Path:
+    """Draws a picture on an 8 x 5.5 in figure and writes it to `out / name`."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 5.5), layout="constrained")
+    draw(fig)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / name
+    fig.savefig(path, dpi=100)
+    return path
