@@ -6,6 +6,7 @@ One tour runs per test module (compilation dominates: ~1 min on 2 cores); the
 
 import contextlib
 import importlib.metadata
+import inspect
 import io
 import math
 import re
@@ -15,6 +16,7 @@ import sys
 import pytest
 
 import constrained_jax.__main__ as cli
+from constrained_jax import tour as tour_entries
 from constrained_jax.__main__ import main
 
 
@@ -231,10 +233,39 @@ def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
 
 
 def test_nan_never_passes():
-    row = cli._Row("s", "q", float("nan"), 1.0, 1e-3, 0.0)
+    row = tour_entries.Row("s", "q", float("nan"), 1.0, 1e-3, 0.0)
     assert not row.passed
-    row = cli._Row("s", "q (/l)", 1e-9, 0.0, 1e-8, 0.0, scale=1.0)
+    row = tour_entries.Row("s", "q (/l)", 1e-9, 0.0, 1e-8, 0.0, scale=1.0)
     assert row.passed and row.rel_error == pytest.approx(1e-9)
+
+
+def test_each_scene_is_declared_once_in_its_tour_module():
+    """The registry lists every scene in the table's order; a scene's builder takes
+    exactly its declared parameters (their defaults are written only in `params`)."""
+    assert list(tour_entries.SCENES) == SCENES
+    for name, scene in tour_entries.SCENES.items():
+        assert scene.name == name
+        signature = inspect.signature(scene.build)
+        assert list(signature.parameters) == ["label", *scene.params]
+        assert all(
+            p.default is inspect.Parameter.empty for p in signature.parameters.values()
+        )
+        assert scene.label({k: p.default for k, p in scene.params.items()}) == name
+
+
+def test_the_library_does_not_import_the_tour():
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys, constrained_jax; "
+            "assert 'constrained_jax.tour' not in sys.modules",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
 
 
 def test_without_matplotlib_the_checks_run_and_say_how_to_install(
