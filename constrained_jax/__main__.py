@@ -33,7 +33,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from . import tour
-from .tour import work_precision
 
 
 _DEFAULT_OUT = "constrained_jax_tour"
@@ -116,7 +115,7 @@ def _parser() -> argparse.ArgumentParser:
         )
 
     pictures = [s.picture for s in tour.SCENES.values() if s.picture]
-    pictures.append(work_precision.PICTURE)
+    pictures.append(tour.WorkPrecision.picture)
     tour_parser = sub.add_parser(
         "tour",
         help="solve every built-in scene, check the closed forms, draw the pictures",

@@ -34,15 +34,14 @@ METHODS = {
 }
 
 
-PICTURE = (
-    "a work-precision diagram of the pendulum for Tsit5, Dopri8 and the variational "
-    "integrator"
-)
-
-
 class WorkPrecision:
     """Its `jobs()` record each method's errors, times and settings; once they have
     run, `rows()`, `pictures()` and `summary()` report them."""
+
+    picture = (
+        "a work-precision diagram of the pendulum for Tsit5, Dopri8 and the "
+        "variational integrator"
+    )
 
     def __init__(self):
         # method -> (errors, times, tags)
