@@ -108,7 +108,7 @@ class Job:
                 c.tolerance,
                 seconds,
                 c.scale,
-            )  # fmt: skip
+            )
             for c in checks
         ]
         return rows, pictures
