@@ -171,7 +171,7 @@ def accelerations_benchmark(scene: str, num: int, repeats: int) -> dict:
         system.lagrangian,
         system.constraints,
         system.forces,
-        linear_solver=cjax.FullKKTLU(),
+        saddle_point_solver=cjax.FullKKTLU(),
     )
     args = module.default_args()
     by_hand = (

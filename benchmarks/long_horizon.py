@@ -75,10 +75,20 @@ def variational_fn(integrator, dt0, ts, max_steps):
     system = pend.system()
 
     def run(q0, qd0, args):
-        (q, qd), result, stats = cjax.integrate_variational(
-            integrator, system, 0.0, ts[-1], dt0, q0, qd0, args, ts, max_steps=max_steps
+        sol = cjax.integrate_variational(
+            integrator,
+            system,
+            0.0,
+            ts[-1],
+            dt0,
+            q0,
+            qd0,
+            args,
+            ts_save=ts,
+            max_steps=max_steps,
+            throw=False,
         )
-        return q, qd, result._value, stats["num_steps"]
+        return sol.q, sol.qd, sol.result._value, sol.stats["num_steps"]
 
     return run
 

@@ -84,6 +84,7 @@ from ._variational_integrator import (
     Trapezoidal as Trapezoidal,
     VariationalIntegrator as VariationalIntegrator,
     VariationalState as VariationalState,
+    VariationalTrajectory as VariationalTrajectory,
 )
 
 

@@ -22,9 +22,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from ._misc import default_float_dtype
+
 
 class AbstractConstraint(eqx.Module):
-    """A set of `k` constraints, holonomic or not, in velocity form `A qdot + a = 0`."""
+    """A set of `k` constraints, holonomic or not, in velocity form `A qdot + a = 0`.
+
+    Two position-level residuals: `position_residual(q, t, args)`, shape `(k,)`, one
+    per row of `A` (`G_j` for a holonomic row, `0` for a Pfaffian one); and
+    `holonomic_residual(q, t, args)`, the holonomic rows `G` only.
+    """
 
     @abc.abstractmethod
     def velocity_form(
@@ -47,7 +54,7 @@ class AbstractConstraint(eqx.Module):
         fn = lambda q_, t_: self.velocity_residual(q_, qd, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
 
-    def position_rows(self, q, t, args) -> Float[Array, " k"]:
+    def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for the others, one per row of `A`:
         the position-level residual that stabilization drives to zero."""
         return jnp.zeros((self.num_constraints(q.shape[0], args, q.dtype),), q.dtype)
@@ -68,11 +75,8 @@ class Holonomic(AbstractConstraint):
     fn: Callable
 
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
-        """`G(q, t)`."""
+        """`G(q, t)` (every row is holonomic)."""
         return jnp.atleast_1d(self.fn(q, t, args))
-
-    def position_rows(self, q, t, args):
-        return self.position_residual(q, t, args)
 
     def holonomic_residual(self, q, t, args):
         return self.position_residual(q, t, args)
@@ -88,7 +92,7 @@ class Holonomic(AbstractConstraint):
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
 
     def num_constraints(self, n, args, dtype=None):
-        dtype = jnp.result_type(float) if dtype is None else dtype
+        dtype = default_float_dtype() if dtype is None else dtype
         q = jax.ShapeDtypeStruct((n,), dtype)
         t = jax.ShapeDtypeStruct((), dtype)
         out = jax.eval_shape(lambda q_, t_: self.fn(q_, t_, args), q, t)
@@ -116,7 +120,7 @@ class Pfaffian(AbstractConstraint):
         return jac, a
 
     def num_constraints(self, n, args, dtype=None):
-        dtype = jnp.result_type(float) if dtype is None else dtype
+        dtype = default_float_dtype() if dtype is None else dtype
         q = jax.ShapeDtypeStruct((n,), dtype)
         t = jax.ShapeDtypeStruct((), dtype)
         out = jax.eval_shape(lambda q_, t_: self.g(q_, t_, args), q, t)
@@ -228,8 +232,10 @@ class Unilateral(AbstractConstraint):
             [c.acceleration_bias(q, qd, t, args) for c in self.constraints]
         )
 
-    def position_rows(self, q, t, args):
-        return jnp.concatenate([c.position_rows(q, t, args) for c in self.constraints])
+    def position_residual(self, q, t, args):
+        return jnp.concatenate(
+            [c.position_residual(q, t, args) for c in self.constraints]
+        )
 
     def holonomic_residual(self, q, t, args):
         return jnp.concatenate(

@@ -17,8 +17,7 @@ X: TypeAlias = PyTree[Float[Array, "..."]]
 
 Scalar: TypeAlias = Float[Array, ""]
 ScalarLike: TypeAlias = float | Float[ArrayLike, ""]
-Vector: TypeAlias = Float[Array, " n"]
-Multipliers: TypeAlias = Float[Array, " k"]
+"""A scalar, e.g. a time `t`: a Python float or a 0-dimensional array."""
 
 ObjectiveFn: TypeAlias = Callable[[X, Args], Scalar]
 """`F(x, args) -> scalar`: the function to extremize."""

@@ -51,7 +51,8 @@ class AbstractDiscretization(eqx.Module):
     - `interpolate(interval, values, x, derivative, interior)`: the represented
         function (or its derivative) anywhere in the interval, from its values at
         all the nodes or at the interior ones;
-    - `linear_solver(...)`: a Lineax solver suited to the structure of the KKT matrix;
+    - `make_linear_solver(num_components, num_holonomic, num_integral)`: a Lineax
+        solver suited to the structure of the KKT matrix;
     - `order`: the convergence order in `1/N`, or `None` for exponential convergence;
     - `error_estimate(values, interval)`: an a-posteriori estimate of the error of
         the represented function, `max_x |y_h(x) - y(x)|`, from the computed values
@@ -112,7 +113,7 @@ class AbstractDiscretization(eqx.Module):
         """
 
     @abc.abstractmethod
-    def linear_solver(
+    def make_linear_solver(
         self, num_components: int, num_holonomic: int, num_integral: int
     ) -> lx.AbstractLinearSolver:
         """The default Lineax solver for the KKT matrix of this discretization."""
@@ -343,7 +344,7 @@ class Chebyshev(AbstractDiscretization):
             jnp.asarray(t_ref, dtype), jnp.asarray(bw, dtype), values, t
         )
 
-    def linear_solver(self, num_components, num_holonomic, num_integral):
+    def make_linear_solver(self, num_components, num_holonomic, num_integral):
         return EquilibratedDenseLU()
 
     def _coefficient_matrix(self) -> np.ndarray:
@@ -502,7 +503,7 @@ class PiecewiseLinear(AbstractDiscretization):
         s = (x - x0) / (x1 - x0)
         return values[i] + s * (values[i + 1] - values[i])
 
-    def linear_solver(self, num_components, num_holonomic, num_integral):
+    def make_linear_solver(self, num_components, num_holonomic, num_integral):
         return BorderedBlockTridiagonal(
             self.num_nodes - 2, num_components, num_holonomic, num_integral
         )
@@ -749,8 +750,8 @@ class Graded(AbstractDiscretization):
             out = out + base(k) * bell[derivative][k]
         return out
 
-    def linear_solver(self, num_components, num_holonomic, num_integral):
-        return self.discretization.linear_solver(
+    def make_linear_solver(self, num_components, num_holonomic, num_integral):
+        return self.discretization.make_linear_solver(
             num_components, num_holonomic, num_integral
         )
 

@@ -11,7 +11,6 @@ of returning NaN when the loss or its gradient stops being finite.
 """
 
 import math
-import os
 from typing import Any
 
 import equinox as eqx
@@ -22,7 +21,7 @@ import optax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._custom_types import Args
-from ._misc import all_finite, as_traced_args
+from ._misc import all_finite, as_traced_args, default_float_dtype, progress_bar
 from ._results import RESULTS
 
 
@@ -134,8 +133,9 @@ def fit(
         search inside the optimizer (`optax.lbfgs`) differentiates `value_fn` itself,
         in reverse mode.
     - `progress`: show a progress bar (tqdm) with the loss, updated every block of
-        100 steps. Also off when the environment variable `TQDM_DISABLE` is set to a
-        true value (`1`), and inside `jax.jit` / `jax.vmap`.
+        100 steps. Also off when the environment variable `TQDM_DISABLE` is set to
+        any non-empty value (as tqdm reads it: `0` and `off` disable it too), and
+        inside `jax.jit` / `jax.vmap`.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:** a [`constrained_jax.FitResult`][] (`params`, `losses`, `grad_norm`,
@@ -208,7 +208,7 @@ def fit(
     if gtol is not None:
         if isinstance(gtol, (int, float)) and not gtol > 0:
             raise ValueError(f"`gtol` must be positive (or None), got {gtol!r}.")
-        gtol = jnp.asarray(gtol, jnp.result_type(float))
+        gtol = jnp.asarray(gtol, default_float_dtype())
 
     traced = any(
         isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves((params0, args))
@@ -237,7 +237,7 @@ def _as_params(params0):
         if not jnp.issubdtype(leaf.dtype, jnp.floating):
             if not jnp.issubdtype(leaf.dtype, jnp.number):
                 raise ValueError(f"`params0` must hold numbers, got {leaf.dtype}.")
-            leaf = leaf.astype(jnp.result_type(float))
+            leaf = leaf.astype(default_float_dtype())
         # A strong type: a weakly typed start would recompile on every new value.
         return jnp.asarray(leaf, leaf.dtype)
 
@@ -475,7 +475,7 @@ def _fit_blocks(
     block = min(steps + 1, _BLOCK)
     num_blocks = math.ceil((steps + 1) / block)
     history = []
-    bar = _progress_bar(steps, progress)
+    bar = progress_bar(progress, total=steps, desc="fit", unit="step")
     try:
         done = 0
         for _ in range(num_blocks):
@@ -497,11 +497,3 @@ def _fit_blocks(
         pad = jnp.full((steps + 1 - losses.shape[0],), state.loss, losses.dtype)
         losses = jnp.concatenate([losses, pad])
     return _finish(state, losses, gtol, params0)
-
-
-def _progress_bar(total: int, progress: bool):
-    from tqdm import tqdm
-
-    env = os.environ.get("TQDM_DISABLE", "").strip().lower()
-    disabled = (not progress) or env not in ("", "0", "false", "no", "off")
-    return tqdm(total=total, desc="fit", unit="step", disable=disabled)

@@ -35,10 +35,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._constraints import AbstractConstraint, Holonomic
-from ._misc import as_traced_args
+from ._custom_types import Args, ScalarLike
+from ._misc import as_traced_args, default_float_dtype
 
 
 # ---------------------------------------------------------------------------------
@@ -59,7 +60,7 @@ def _check_constraint(constraint, fn_name: str) -> None:
 def _as_float(x: ArrayLike, name: str) -> Array:
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.inexact):
-        x = x.astype(jnp.result_type(float))
+        x = x.astype(default_float_dtype())
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise ValueError(f"`{name}` must be real, got dtype {x.dtype}.")
     return x
@@ -144,8 +145,8 @@ def _exterior(jac):
 def exterior_derivative(
     constraint: AbstractConstraint,
     q: Float[ArrayLike, " n"],
-    t: float | Float[ArrayLike, ""] = 0.0,
-    args: PyTree = None,
+    t: ScalarLike = 0.0,
+    args: Args = None,
 ) -> Float[Array, "k n+1 n+1"]:
     """The exterior derivatives `d omega_j` of the constraint 1-forms at `(q, t)`.
 
@@ -230,8 +231,8 @@ def _pointwise_jit(test, constraint, q, t, args, rtol, atol):
 def is_exact(
     constraint: AbstractConstraint,
     q: Float[ArrayLike, " n"] | Float[ArrayLike, "m n"],
-    t: float | Float[ArrayLike, ""] | Float[ArrayLike, " m"] = 0.0,
-    args: PyTree = None,
+    t: ScalarLike | Float[ArrayLike, " m"] = 0.0,
+    args: Args = None,
     *,
     rtol: float | None = None,
     atol: float = 0.0,
@@ -286,8 +287,8 @@ def is_exact(
 def is_integrable(
     constraint: AbstractConstraint,
     q: Float[ArrayLike, " n"] | Float[ArrayLike, "m n"],
-    t: float | Float[ArrayLike, ""] | Float[ArrayLike, " m"] = 0.0,
-    args: PyTree = None,
+    t: ScalarLike | Float[ArrayLike, " m"] = 0.0,
+    args: Args = None,
     *,
     rtol: float | None = None,
     atol: float = 0.0,
@@ -392,8 +393,8 @@ class _SegmentIntegral(eqx.Module):
 def integrate_pfaffian(
     constraint: AbstractConstraint,
     q_ref: Float[ArrayLike, " n"],
-    t_ref: float | Float[ArrayLike, ""] = 0.0,
-    args: PyTree = None,
+    t_ref: ScalarLike = 0.0,
+    args: Args = None,
     *,
     num_points: int = 16,
 ) -> Holonomic:

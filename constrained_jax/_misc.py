@@ -1,6 +1,7 @@
 """Small helpers shared by the entry points."""
 
 import functools
+import os
 import warnings
 
 import jax
@@ -58,6 +59,20 @@ def warn_if_float32() -> None:
         _warn_float32_once()
 
 
+def progress_bar(progress: bool, **kwargs):
+    """A tqdm progress bar (`kwargs` go to `tqdm.tqdm`), disabled when `progress` is
+    false or when the environment variable `TQDM_DISABLE` is set to a non-empty value.
+
+    Any non-empty value disables it, `0`, `false` and `off` included: tqdm itself reads
+    the variable so (as `bool` of the string), and every tqdm bar in the process,
+    diffrax's `TqdmProgressMeter` included, then agrees. Unlike tqdm, which reads it
+    once on import, it is read here on every call."""
+    from tqdm import tqdm
+
+    disable = not progress or bool(os.environ.get("TQDM_DISABLE", ""))
+    return tqdm(disable=disable, **kwargs)
+
+
 def as_traced_args(args: PyTree) -> PyTree:
     """Turn Python numbers in `args` into arrays, so that they are traced.
 
@@ -101,5 +116,5 @@ def inexact_asarray(x) -> Array:
     warn_if_float32()
     dtype = jnp.result_type(x)
     if not jnp.issubdtype(dtype, jnp.inexact):
-        dtype = jnp.result_type(float)
+        dtype = default_float_dtype()
     return jnp.asarray(x, dtype=dtype)

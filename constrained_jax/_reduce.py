@@ -10,7 +10,7 @@ with generalised forces `(dphi/ds)^T Q`. The multipliers of the eliminated const
 are not lost: as the lecture does for the two cylinders, they follow from the residual
 of the full equations along the reduced motion, `A^T lambda = M qddot + c - Q`.
 
-`linearize(system, q_eq, qd_eq, args)`: the linearised dynamics on the constraint
+`linearize(system, q_eq, qd_eq, t, args)`: the linearised dynamics on the constraint
 manifold about an equilibrium, and its eigenvalues.
 """
 
@@ -19,9 +19,11 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float
 
 from ._constraints import AbstractConstraint, Holonomic
+from ._custom_types import Args, ScalarLike
+from ._misc import default_float_dtype
 from ._system import LagrangianSystem
 
 
@@ -135,7 +137,13 @@ def _null_space(jac: Float[Array, "k n"]) -> Float[Array, "n m"]:
     return vt[k:].T
 
 
-def linearize(system: LagrangianSystem, q_eq, qd_eq, args=None, t=0.0) -> Linearization:
+def linearize(
+    system: LagrangianSystem,
+    q_eq: Float[ArrayLike, " n"],
+    qd_eq: Float[ArrayLike, " n"],
+    t: ScalarLike = 0.0,
+    args: Args = None,
+) -> Linearization:
     """Linearise the constrained dynamics about `(q_eq, qd_eq)` at time `t`.
 
     Position perturbations are restricted to the tangent space of the holonomic
@@ -143,9 +151,18 @@ def linearize(system: LagrangianSystem, q_eq, qd_eq, args=None, t=0.0) -> Linear
     `A` (assumed of full rank `k`): the spurious zero modes of the index-1 equations
     (drift off the manifold) are excluded. Non-autonomous systems are linearised at the
     frozen time `t`.
+
+    **Arguments:**
+
+    - `system`: a [`constrained_jax.LagrangianSystem`][].
+    - `q_eq`, `qd_eq`: the equilibrium, shape `(n,)`, on the constraints.
+    - `t`: the time at which a non-autonomous system is frozen.
+    - `args`: parameters passed to every user function.
+
+    **Returns:** a [`constrained_jax.Linearization`][].
     """
-    q_eq = jnp.asarray(q_eq, float)
-    qd_eq = jnp.asarray(qd_eq, float)
+    q_eq = jnp.asarray(q_eq, default_float_dtype())
+    qd_eq = jnp.asarray(qd_eq, default_float_dtype())
     system.check(q_eq, qd_eq, t, args)
     t = jnp.asarray(t, q_eq.dtype)
     holonomic_rows = [

@@ -35,6 +35,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._misc import progress_bar
+
 
 _FORMAT = "constrained_jax.sweep/1"
 _MANIFEST = "manifest.json"
@@ -99,7 +101,8 @@ def sweep(
         below. `None` (default): nothing is written.
     - `progress`: show a tqdm bar (chunks done, rate, time left; compilation, shown
         as such, is left out of the rate). `False`, or the environment variable
-        `TQDM_DISABLE=1`, turns it off. A long single
+        `TQDM_DISABLE` set to any non-empty value (as tqdm reads it: `0` and `off`
+        disable it too), turns it off. A long single
         simulation has diffrax's progress meter instead:
         `cjax.simulate(..., progress_meter=diffrax.TqdmProgressMeter())`.
 
@@ -220,7 +223,9 @@ def sweep(
                     out[start:stop] = part
                 done[index] = True
 
-    bar = _progress_bar(progress, n_chunks, sum(done))
+    bar = progress_bar(
+        progress, total=n_chunks, initial=sum(done), unit="chunk", desc="cjax.sweep"
+    )
     try:
         compiled = None
         for index in range(n_chunks):
@@ -651,17 +656,6 @@ def _check_devices(devices) -> list:
             "(see the docstring of `cjax.sweep`)."
         )
     return devices
-
-
-def _progress_bar(progress: bool, total: int, initial: int):
-    from tqdm import tqdm
-
-    kwargs = {}
-    # tqdm reads TQDM_DISABLE when it is imported; read it again at call time.
-    env = os.environ.get("TQDM_DISABLE", "").strip().lower()
-    if not progress or env not in ("", "0", "false", "no"):
-        kwargs["disable"] = True
-    return tqdm(total=total, initial=initial, unit="chunk", desc="cjax.sweep", **kwargs)
 
 
 # --------------------------------------------------------------------------------------

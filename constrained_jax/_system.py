@@ -41,7 +41,7 @@ class LagrangianSystem(eqx.Module):
         in the order given; so are the multipliers.
     - `forces`: `Q(q, qd, t, args) -> (n,)`, generalised non-conservative forces, or
         `None`.
-    - `linear_solver`: how the KKT system is solved, an
+    - `saddle_point_solver`: how the KKT system is solved, an
         `AbstractSaddlePointSolver`: [`constrained_jax.RangeSpaceLDL`][] (default;
         any positive semidefinite `M`, i.e. any kinetic energy, even a singular one)
         or [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole KKT matrix, also
@@ -53,7 +53,7 @@ class LagrangianSystem(eqx.Module):
     lagrangian: Callable
     constraints: tuple[AbstractConstraint, ...] = ()
     forces: Callable | None = None
-    linear_solver: AbstractSaddlePointSolver = RangeSpaceLDL()
+    saddle_point_solver: AbstractSaddlePointSolver = RangeSpaceLDL()
 
     def __init__(
         self,
@@ -61,7 +61,7 @@ class LagrangianSystem(eqx.Module):
         constraints: AbstractConstraint | Sequence[AbstractConstraint] = (),
         forces: Callable | None = None,
         *,
-        linear_solver: AbstractSaddlePointSolver = RangeSpaceLDL(),
+        saddle_point_solver: AbstractSaddlePointSolver = RangeSpaceLDL(),
     ):
         if not callable(lagrangian):
             raise ValueError("`lagrangian` must be a callable L(q, qd, t, args).")
@@ -79,13 +79,13 @@ class LagrangianSystem(eqx.Module):
             raise ValueError("`forces` must be a callable Q(q, qd, t, args) or None.")
         self.lagrangian = lagrangian
         self.constraints = constraints
-        if not isinstance(linear_solver, AbstractSaddlePointSolver):
+        if not isinstance(saddle_point_solver, AbstractSaddlePointSolver):
             raise ValueError(
-                "`linear_solver` must be `cjax.RangeSpaceLDL()` or `cjax.FullKKTLU()`, "
-                f"got {type(linear_solver).__name__}."
+                "`saddle_point_solver` must be `cjax.RangeSpaceLDL()` or "
+                f"`cjax.FullKKTLU()`, got {type(saddle_point_solver).__name__}."
             )
         self.forces = forces
-        self.linear_solver = linear_solver
+        self.saddle_point_solver = saddle_point_solver
 
     # ------------------------------------------------------------------ structure
 
@@ -127,7 +127,7 @@ class LagrangianSystem(eqx.Module):
             self.lagrangian,
             constraints,
             self.forces,
-            linear_solver=self.linear_solver,
+            saddle_point_solver=self.saddle_point_solver,
         )
 
     # ------------------------------------------------------------------ physics
@@ -167,7 +167,7 @@ class LagrangianSystem(eqx.Module):
             [c.velocity_residual(q, qd, t, args) for c in self.constraints]
         )
 
-    def position_violation(self, q, t, args) -> Float[Array, " k_holonomic"]:
+    def holonomic_residual(self, q, t, args) -> Float[Array, " k_holonomic"]:
         """`G(q, t)` for the holonomic constraints (nonholonomic ones have none)."""
         parts = [c.holonomic_residual(q, t, args) for c in self.constraints]
         if not parts:
@@ -198,12 +198,14 @@ class LagrangianSystem(eqx.Module):
         bias = self.acceleration_bias(q, qd, t, args)
         return mass, rhs, jac, bias
 
-    def position_rows(self, q, t, args) -> Float[Array, " k"]:
+    def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for Pfaffian ones, stacked like the
         rows of `A`: the position-level residual used by stabilization."""
         if not self.constraints:
             return jnp.zeros((0,), q.dtype)
-        return jnp.concatenate([c.position_rows(q, t, args) for c in self.constraints])
+        return jnp.concatenate(
+            [c.position_residual(q, t, args) for c in self.constraints]
+        )
 
     def solve_accelerations(
         self, q, qd, t, args, bias_correction=None
@@ -213,7 +215,7 @@ class LagrangianSystem(eqx.Module):
         `singular` flags a KKT system without a solution (then `qddot`, `lambda` are
         zeros); free gauge directions (no inertia, no force) are not singular, their
         accelerations are zero (see `accelerations`).
-        The solve is `self.linear_solver`'s (by default the range-space method,
+        The solve is `self.saddle_point_solver`'s (by default the range-space method,
         unrolled so that XLA fuses it: on CPU a LAPACK call on such a small matrix
         costs more than its arithmetic). `bias_correction` (shape `(k,)`) is added to
         the acceleration bias, as Baumgarte stabilization does.
@@ -222,7 +224,7 @@ class LagrangianSystem(eqx.Module):
         mass, rhs, jac, bias = self._equations(q, qd, t, args)
         if bias_correction is not None:
             bias = bias + bias_correction
-        return self.linear_solver.solve(mass, jac, rhs, bias)
+        return self.saddle_point_solver.solve(mass, jac, rhs, bias)
 
     def accelerations(self, q, qd, t, args=None):
         """Solve the equations of motion for `(qddot, multipliers)`.

@@ -80,7 +80,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Holonomic
 from ._linalg import dense_factor, dense_solve
-from ._misc import all_finite, check_max_steps
+from ._misc import all_finite, check_max_steps, default_float_dtype
 from ._results import RESULTS
 from ._system import LagrangianSystem
 
@@ -308,16 +308,16 @@ class VariationalIntegrator(AbstractVariationalIntegrator):
     function theorem, not through the Newton iterations.
     """
 
-    discretization: AbstractDiscreteLagrangian = Trapezoidal()
+    quadrature: AbstractDiscreteLagrangian = Trapezoidal()
     newton_steps: int = 10
     rtol: float | None = None
     atol: float | None = None
 
     def __check_init__(self):
-        if not isinstance(self.discretization, AbstractDiscreteLagrangian):
+        if not isinstance(self.quadrature, AbstractDiscreteLagrangian):
             raise ValueError(
-                "`discretization` must be `cjax.Trapezoidal()` or `cjax.Midpoint()`, "
-                f"got {type(self.discretization).__name__}."
+                "`quadrature` must be `cjax.Trapezoidal()` or `cjax.Midpoint()`, "
+                f"got {type(self.quadrature).__name__}."
             )
         if (
             not isinstance(self.newton_steps, int)
@@ -353,18 +353,17 @@ class VariationalIntegrator(AbstractVariationalIntegrator):
         z, ok1, it1 = solve(
             (system, q0, p0, t0, h, args),
             guess,
-            fn=ft.partial(_position_residual, self.discretization, n),
+            fn=ft.partial(_position_residual, self.quadrature, n),
         )
         q1, nu = z[:n], z[n:]
         # Step 2: the momentum at q1, and the velocity it implies, on the velocity
         # constraint (the second half of the impulse).
         p_tilde = jax.grad(
-            lambda b: self.discretization(system.lagrangian, q0, b, t0, h, args)
+            lambda b: self.quadrature(system.lagrangian, q0, b, t0, h, args)
         )(q1)
         if system.forces is not None:
             p_tilde = (
-                p_tilde
-                + self.discretization.forces(system.forces, q0, q1, t0, h, args)[1]
+                p_tilde + self.quadrature.forces(system.forces, q0, q1, t0, h, args)[1]
             )
         guess = jnp.concatenate([2 * (q1 - q0) / h - state.qd, nu])
         z, ok2, it2 = solve(
@@ -380,7 +379,7 @@ class VariationalIntegrator(AbstractVariationalIntegrator):
 
 VariationalIntegrator.__init__.__doc__ = """**Arguments:**
 
-- `discretization`: the discrete Lagrangian, [`constrained_jax.Trapezoidal`][]
+- `quadrature`: the discrete Lagrangian, [`constrained_jax.Trapezoidal`][]
     (default; RATTLE for separable Lagrangians) or [`constrained_jax.Midpoint`][].
 - `newton_steps`: the most Newton iterations per nonlinear solve (two per step). A
     solve that has not converged by then fails the integration with
@@ -406,6 +405,29 @@ def _num_steps(span, dt0):
     return count.astype(jnp.result_type(int))
 
 
+class VariationalTrajectory(eqx.Module):
+    """The result of [`constrained_jax.integrate_variational`][].
+
+    **Attributes:**
+
+    - `ts`: the save times, shape `(T,)`.
+    - `q`, `qd`: positions and velocities at `ts`, shape `(T, n)` each; `inf` at
+        save times that were not reached (after a failure).
+    - `result`: a [`constrained_jax.RESULTS`][] member.
+    - `stats`: `{"num_steps": ..., "num_newton_iterations": ...}`.
+
+    [`constrained_jax.simulate`][] with `solver=cjax.VariationalIntegrator()` runs the
+    same integration and returns a [`constrained_jax.Trajectory`][], with the
+    multipliers, energy and constraint violation at the save times as well.
+    """
+
+    ts: Float[Array, " T"]
+    q: Float[Array, "T n"]
+    qd: Float[Array, "T n"]
+    result: RESULTS
+    stats: dict
+
+
 def integrate_variational(
     integrator: AbstractVariationalIntegrator,
     system: LagrangianSystem,
@@ -414,11 +436,12 @@ def integrate_variational(
     dt0,
     q0,
     qd0,
-    args,
-    ts_save,
+    args=None,
     *,
+    ts_save,
     max_steps: int = 16384,
-) -> tuple[tuple[Float[Array, "T n"], Float[Array, "T n"]], RESULTS, dict]:
+    throw: bool = True,
+) -> VariationalTrajectory:
     """Integrate with a variational integrator and save at `ts_save`.
 
     **Arguments:**
@@ -434,10 +457,10 @@ def integrate_variational(
     - `ts_save`: nondecreasing save times in `[t0, t1]`, shape `(T,)` with `T >= 1`
         static (values may be traced).
     - `max_steps`: a static bound on the total number of steps.
+    - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
-    **Returns:** `((q, qd), result, stats)`: positions and velocities at `ts_save`,
-    shape `(T, n)` each; a [`constrained_jax.RESULTS`][] member; and
-    `{"num_steps": ..., "num_newton_iterations": ...}`.
+    **Returns:** a [`constrained_jax.VariationalTrajectory`][]: positions and
+    velocities at `ts_save`, the `result` and the `stats` (steps, Newton iterations).
 
     **Save times are hit exactly.** The interval between consecutive save times
     (and from `t0` to the first) is divided into the fewest equal steps
@@ -450,10 +473,10 @@ def integrate_variational(
     energy for another at each change. Choose `dt0` to divide the spacing. The
     integration ends at the last save time (there is nothing to compute after it).
 
-    **Failures** are reported, not raised (the caller decides, e.g. with
-    `result.error_if`): `RESULTS.max_steps_reached` when more than `max_steps`
-    steps would be needed; `RESULTS.variational_step_failed` when a Newton solve does
-    not converge (the step is too large, or the constraints are dependent);
+    **Failures** raise with `throw=True`; with `throw=False` they are reported in
+    `result`: `RESULTS.max_steps_reached` when more than `max_steps` steps would be
+    needed; `RESULTS.variational_step_failed` when a Newton solve does not converge
+    (the step is too large, or the constraints are dependent);
     `RESULTS.invalid_time_grid` when `dt0 <= 0` or the save times are not nondecreasing
     in `[t0, t1]`; `RESULTS.invalid_input` for non-finite inputs. States at save
     times not reached are `inf`.
@@ -479,7 +502,7 @@ def integrate_variational(
     check_max_steps(max_steps)
     q0 = jnp.asarray(q0)
     if not jnp.issubdtype(q0.dtype, jnp.inexact):
-        q0 = q0.astype(jnp.result_type(float))
+        q0 = q0.astype(default_float_dtype())
     dtype = q0.dtype
     qd0 = jnp.asarray(qd0, dtype)
     system.check(q0, qd0, jnp.asarray(t0, dtype), args)
@@ -494,9 +517,10 @@ def integrate_variational(
     dt0 = jnp.asarray(dt0, dtype)
     if t0.shape != () or t1.shape != () or dt0.shape != ():
         raise ValueError("`t0`, `t1` and `dt0` must be scalars.")
-    return _integrate(
-        integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps
-    )
+    sol = _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps)
+    if throw:
+        sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
+    return sol
 
 
 class _Carry(eqx.Module):
@@ -601,4 +625,6 @@ def _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_step
         "num_steps": final.num_steps,
         "num_newton_iterations": final.newton_iterations,
     }
-    return (q_saved, qd_saved), result, stats
+    return VariationalTrajectory(
+        ts=ts_save, q=q_saved, qd=qd_saved, result=result, stats=stats
+    )

@@ -210,6 +210,21 @@ def test_progress_bar(capsys, monkeypatch):
     assert tree_allclose(on, env_off, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize(
+    "value, shown", [("", True), ("0", False), ("off", False), ("1", False)]
+)
+def test_tqdm_disable_read_as_tqdm_reads_it(monkeypatch, value, shown):
+    """`fit` and `sweep` share one reading of `TQDM_DISABLE`, tqdm's own: any
+    non-empty value (even `0` or `off`) turns the bar off."""
+    from constrained_jax._misc import progress_bar
+
+    monkeypatch.setenv("TQDM_DISABLE", value)
+    bar = progress_bar(True, total=1)
+    assert bar.disable == (not shown)
+    bar.close()
+    assert progress_bar(False, total=1).disable
+
+
 def test_args_and_params_are_traced():
     """A new `args` (the data) or a new start never recompiles: the loss is traced
     only for the first fit."""

@@ -91,7 +91,7 @@ def test_linearized_growth_rate_at_the_top(alpha):
         ),
     )
     q, qd = cyl2.state(jnp.asarray(0.0), jnp.asarray(0.0), args)
-    lin = cjax.linearize(holonomic, q, qd, args)
+    lin = cjax.linearize(holonomic, q, qd, args=args)
     rate = np.sqrt(args["g"] / ((1 + alpha) * (args["R"] + args["a"])))
     np.testing.assert_allclose(
         np.sort(np.asarray(lin.eigenvalues).real), [-rate, rate], rtol=1e-10
@@ -101,7 +101,9 @@ def test_linearized_growth_rate_at_the_top(alpha):
 
 def test_linearized_pendulum_frequency():
     args = pendulum.default_args(l=0.5)
-    lin = cjax.linearize(pendulum.system(), jnp.array([0.0, -0.5]), jnp.zeros(2), args)
+    lin = cjax.linearize(
+        pendulum.system(), jnp.array([0.0, -0.5]), jnp.zeros(2), args=args
+    )
     omega = np.sqrt(args["g"] / args["l"])
     np.testing.assert_allclose(
         np.sort(np.asarray(lin.eigenvalues).imag), [-omega, omega], rtol=1e-10

@@ -127,9 +127,13 @@ def test_system_uses_its_solver():
     q, qd = cyl.state(0.4, 0.0, args)
     for solver in (cjax.RangeSpaceLDL(), cjax.FullKKTLU()):
         system = cjax.LagrangianSystem(
-            cyl.system().lagrangian, cyl.system().constraints, linear_solver=solver
+            cyl.system().lagrangian,
+            cyl.system().constraints,
+            saddle_point_solver=solver,
         )
         _, lam = jax.jit(system.accelerations)(q, qd, 0.0, args)
         np.testing.assert_allclose(lam[0], cyl.normal_force(0.4, 0.4, args), rtol=1e-12)
-    with pytest.raises(ValueError, match="linear_solver"):
-        cjax.LagrangianSystem(cyl.system().lagrangian, linear_solver=cjax.DenseLU())
+    with pytest.raises(ValueError, match="saddle_point_solver"):
+        cjax.LagrangianSystem(
+            cyl.system().lagrangian, saddle_point_solver=cjax.DenseLU()
+        )

@@ -118,7 +118,7 @@ def _pendulum_with_massless(potential: float, solver):
         return pendulum.lagrangian(q[:2], qd[:2], t, args) - potential * q[2]
 
     rod = cjax.Holonomic(lambda q, t, args: pendulum.rod(q[:2], t, args))
-    return cjax.LagrangianSystem(lagrangian, rod, linear_solver=solver)
+    return cjax.LagrangianSystem(lagrangian, rod, saddle_point_solver=solver)
 
 
 def _pendulum_state(theta, thetadot, args, phi=0.7, phidot=0.4):
@@ -180,7 +180,8 @@ def test_gauge_direction_not_along_a_coordinate(solver):
     m, g = 2.0, 9.81
     kinetic = lambda qd: 0.5 * m * (qd[0] + qd[1]) ** 2
     gauge = cjax.LagrangianSystem(
-        lambda q, qd, t, a: kinetic(qd) - m * g * (q[0] + q[1]), linear_solver=solver
+        lambda q, qd, t, a: kinetic(qd) - m * g * (q[0] + q[1]),
+        saddle_point_solver=solver,
     )
     q, qd = jnp.array([0.3, -0.2]), jnp.array([0.5, 0.1])
     qdd, lam = gauge.accelerations(q, qd, 0.0)
@@ -188,7 +189,7 @@ def test_gauge_direction_not_along_a_coordinate(solver):
     np.testing.assert_allclose(qdd[0] + qdd[1], -g, rtol=1e-14)
     assert jnp.min(jnp.abs(qdd)) == 0.0  # zero at the vanishing pivot
     forced = cjax.LagrangianSystem(
-        lambda q, qd, t, a: kinetic(qd) - m * g * q[0], linear_solver=solver
+        lambda q, qd, t, a: kinetic(qd) - m * g * q[0], saddle_point_solver=solver
     )
     assert forced.solve_accelerations(q, qd, 0.0, None)[2]
 

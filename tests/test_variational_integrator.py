@@ -7,6 +7,7 @@ gradients against finite differences, jit/vmap, and the failure statuses.
 """
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,8 +46,9 @@ def _pendulum_runner(integrator, max_steps=1_000):
             q0,
             qd0,
             args,
-            ts,
+            ts_save=ts,
             max_steps=max_steps,
+            throw=False,
         )
 
     def run(theta0, thetadot0, args, dt0, ts):
@@ -64,7 +66,7 @@ def runners():
     return {
         "trapezoidal": _pendulum_runner(cjax.VariationalIntegrator()),
         "midpoint": _pendulum_runner(
-            cjax.VariationalIntegrator(discretization=cjax.Midpoint())
+            cjax.VariationalIntegrator(quadrature=cjax.Midpoint())
         ),
     }
 
@@ -89,11 +91,11 @@ def test_matches_rattle_written_out(runners):
     args = pendulum.default_args(l=0.9)
     h, steps = 0.05, 40
     theta0, thetadot0 = 1.1, 0.7
-    (q, qd), result, stats = runners["trapezoidal"](
+    sol = runners["trapezoidal"](
         theta0, thetadot0, args, h, jnp.array([steps * h / 2, steps * h])
     )
-    assert result == cjax.RESULTS.successful
-    assert int(stats["num_steps"]) == steps
+    assert sol.result == cjax.RESULTS.successful
+    assert int(sol.stats["num_steps"]) == steps
     length, f = 0.9, np.array([0.0, -9.81])
     q_ref, p_ref = (np.asarray(x) for x in pendulum.state(theta0, thetadot0, args))
     for _ in range(steps):
@@ -104,8 +106,8 @@ def test_matches_rattle_written_out(runners):
         p_new = (q_new - q_ref) / h + h / 2 * f
         p_ref = p_new - (p_new @ q_new) / length**2 * q_new
         q_ref = q_new
-    np.testing.assert_allclose(q[-1], q_ref, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(qd[-1], p_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.q[-1], q_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sol.qd[-1], p_ref, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["trapezoidal", "midpoint"])
@@ -119,12 +121,10 @@ def test_second_order_convergence(runners, name):
     steps = np.array([20, 40, 80, 160])
     errors = []
     for num in steps:
-        (q, _), result, stats = runners[name](
-            theta0, 0.0, args, t1 / num, jnp.array([t1 / 2, t1])
-        )
-        assert result == cjax.RESULTS.successful
-        assert int(stats["num_steps"]) == num
-        errors.append(float(np.linalg.norm(q[-1] - exact)))
+        sol = runners[name](theta0, 0.0, args, t1 / num, jnp.array([t1 / 2, t1]))
+        assert sol.result == cjax.RESULTS.successful
+        assert int(sol.stats["num_steps"]) == num
+        errors.append(float(np.linalg.norm(sol.q[-1] - exact)))
     slope = np.polyfit(np.log(1.0 / steps), np.log(errors), 1)[0]
     assert 1.9 < slope < 2.1, (errors, slope)
 
@@ -137,8 +137,9 @@ def test_time_reversible(runners, name):
     run = runners[name]
     theta0, thetadot0, h = jnp.asarray(1.3), jnp.asarray(0.4), 0.02
     ts = jnp.array([200 * h, 400 * h])
-    (q, qd), result, _ = run(theta0, thetadot0, args, h, ts)
-    assert result == cjax.RESULTS.successful
+    sol = run(theta0, thetadot0, args, h, ts)
+    assert sol.result == cjax.RESULTS.successful
+    q, qd = sol.q, sol.qd
     q0, qd0 = pendulum.state(theta0, thetadot0, args)
     assert float(jnp.linalg.norm(q[-1] - q0)) > 0.1  # it really moved
     # Restart from (q, -qd): the angle and rate of that state.
@@ -147,10 +148,10 @@ def test_time_reversible(runners, name):
     back_q0, back_qd0 = pendulum.state(theta1, -thetadot1, args)
     np.testing.assert_allclose(back_q0, q[-1], rtol=0, atol=1e-15)
     np.testing.assert_allclose(back_qd0, -qd[-1], rtol=0, atol=1e-14)
-    (qb, qdb), result, _ = run(theta1, -thetadot1, args, h, ts)
-    assert result == cjax.RESULTS.successful
-    np.testing.assert_allclose(qb[-1], q0, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(qdb[-1], -qd0, rtol=0, atol=1e-11)
+    back = run(theta1, -thetadot1, args, h, ts)
+    assert back.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(back.q[-1], q0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(back.qd[-1], -qd0, rtol=0, atol=1e-11)
 
 
 def _energy(system, q, qd, args):
@@ -169,9 +170,16 @@ def long_run():
     h = pendulum.period(theta0, args) / LONG_STEPS_PER_PERIOD
     ts = h * LONG_SAVE_EVERY * jnp.arange(float(LONG_SAVES))  # 9,999 periods
     run = _pendulum_runner(cjax.VariationalIntegrator(), max_steps=210_000)
-    (q, qd), result, stats = run(theta0, 0.0, args, h, ts)
+    sol = run(theta0, 0.0, args, h, ts)
     return dict(
-        args=args, theta0=theta0, h=h, ts=ts, q=q, qd=qd, result=result, stats=stats
+        args=args,
+        theta0=theta0,
+        h=h,
+        ts=ts,
+        q=sol.q,
+        qd=sol.qd,
+        result=sol.result,
+        stats=sol.stats,
     )
 
 
@@ -264,14 +272,25 @@ def test_rheonomic_constraint_hoop():
     def run(dt0):
         q0, qd0 = hoop.state(jnp.asarray(theta0), jnp.asarray(thetadot0), 0.0, args)
         ts = jnp.linspace(0.0, t1, 11)
-        (q, qd), result, _ = cjax.integrate_variational(
-            integrator, system, 0.0, t1, dt0, q0, qd0, args, ts, max_steps=1000
+        sol = cjax.integrate_variational(
+            integrator,
+            system,
+            0.0,
+            t1,
+            dt0,
+            q0,
+            qd0,
+            args,
+            ts_save=ts,
+            max_steps=1000,
+            throw=False,
         )
-        position = jax.vmap(lambda a, t: system.position_violation(a, t, args))(q, ts)
+        q, qd = sol.q, sol.qd
+        position = jax.vmap(lambda a, t: system.holonomic_residual(a, t, args))(q, ts)
         velocity = jax.vmap(lambda a, b, t: system.velocity_violation(a, b, t, args))(
             q, qd, ts
         )
-        return hoop.angle(q[-1], ts[-1], args), position, velocity, result
+        return hoop.angle(q[-1], ts[-1], args), position, velocity, sol.result
 
     steps = np.array([50, 100, 200, 400])
     errors = []
@@ -300,13 +319,14 @@ def test_nonholonomic_rolling_disk():
     def run(dt0):
         q0, qd0 = disk.initial_state(jnp.asarray(theta0), nu, omega, args)
         ts = jnp.linspace(0.0, t1, 5)
-        (q, qd), result, _ = cjax.integrate_variational(
-            integrator, system, 0.0, t1, dt0, q0, qd0, args, ts
+        sol = cjax.integrate_variational(
+            integrator, system, 0.0, t1, dt0, q0, qd0, args, ts_save=ts, throw=False
         )
+        q, qd = sol.q, sol.qd
         velocity = jax.vmap(lambda a, b: system.velocity_violation(a, b, 0.0, args))(
             q, qd
         )
-        return q, _energy(system, q, qd, args), velocity, result
+        return q, _energy(system, q, qd, args), velocity, sol.result
 
     exact, _ = disk.closed_form(jnp.asarray(t1), theta0, nu, omega, args)
     steps = np.array([50, 100, 200, 400])
@@ -342,13 +362,15 @@ def test_pfaffian_rows_and_singular_mass_two_cylinders():
             q0,
             qd0,
             args,
-            ts,
+            ts_save=ts,
+            throw=False,
         )
 
     errors = []
     for dt0 in [0.004, 0.002]:
-        (q, qd), result, _ = run(dt0)
-        assert result == cjax.RESULTS.successful
+        sol = run(dt0)
+        assert sol.result == cjax.RESULTS.successful
+        q, qd = sol.q, sol.qd
         assert float(q[-1, 1]) > float(theta0) + 0.3  # it really rolled
         np.testing.assert_allclose(q[:, 0], args["R"] + args["a"], rtol=1e-14)
         ratio = 1 + args["R"] / args["a"]
@@ -392,15 +414,16 @@ def test_forces_damped_pendulum():
             q0,
             qd0,
             args,
-            jnp.array([t1]),
+            ts_save=jnp.array([t1]),
+            throw=False,
         )
 
     steps = np.array([25, 50, 100, 200])
     errors = []
     for num in steps:
-        (q, _), result, _ = run(t1 / num)
-        assert result == cjax.RESULTS.successful
-        errors.append(float(jnp.linalg.norm(q[-1] - reference)))
+        sol = run(t1 / num)
+        assert sol.result == cjax.RESULTS.successful
+        errors.append(float(jnp.linalg.norm(sol.q[-1] - reference)))
     slope = np.polyfit(np.log(1.0 / steps), np.log(errors), 1)[0]
     assert 1.9 < slope < 2.1, (errors, slope)
 
@@ -413,28 +436,26 @@ def test_save_times_hit_exactly(runners):
     run = runners["trapezoidal"]
     theta0, thetadot0 = 0.9, 0.0
     q0, qd0 = pendulum.state(jnp.asarray(theta0), jnp.asarray(thetadot0), args)
-    (q, qd), result, stats = run(theta0, thetadot0, args, 0.1, jnp.array([0.0, 0.33]))
-    assert result == cjax.RESULTS.successful
-    assert int(stats["num_steps"]) == 4  # ceil(0.33 / 0.1)
-    np.testing.assert_array_equal(q[0], q0)
-    np.testing.assert_array_equal(qd[0], qd0)
-    (q2, qd2), result, stats = run(
-        theta0, thetadot0, args, 0.1, jnp.array([0.33, 0.33])
-    )
-    assert result == cjax.RESULTS.successful
-    assert int(stats["num_steps"]) == 4
-    np.testing.assert_array_equal(q2[0], q2[1])
-    np.testing.assert_array_equal(qd2[0], qd2[1])
-    np.testing.assert_allclose(q2[1], q[1], rtol=0, atol=1e-15)
+    sol = run(theta0, thetadot0, args, 0.1, jnp.array([0.0, 0.33]))
+    assert sol.result == cjax.RESULTS.successful
+    assert int(sol.stats["num_steps"]) == 4  # ceil(0.33 / 0.1)
+    np.testing.assert_array_equal(sol.q[0], q0)
+    np.testing.assert_array_equal(sol.qd[0], qd0)
+    sol2 = run(theta0, thetadot0, args, 0.1, jnp.array([0.33, 0.33]))
+    assert sol2.result == cjax.RESULTS.successful
+    assert int(sol2.stats["num_steps"]) == 4
+    np.testing.assert_array_equal(sol2.q[0], sol2.q[1])
+    np.testing.assert_array_equal(sol2.qd[0], sol2.qd[1])
+    np.testing.assert_allclose(sol2.q[1], sol.q[1], rtol=0, atol=1e-15)
     # 0.33 then 0.5: 4 steps of 0.0825, then ceil(0.17 / 0.1) = 2 of 0.085.
-    (q3, qd3), result, stats = run(theta0, thetadot0, args, 0.1, jnp.array([0.33, 0.5]))
-    assert int(stats["num_steps"]) == 6
-    np.testing.assert_allclose(q3[0], q[1], rtol=0, atol=1e-15)
-    np.testing.assert_allclose(qd3[0], qd[1], rtol=0, atol=1e-14)
-    (q4, _), _, stats = run(theta0, thetadot0, args, 0.5 / 6, jnp.array([0.25, 0.5]))
-    assert int(stats["num_steps"]) == 6
+    sol3 = run(theta0, thetadot0, args, 0.1, jnp.array([0.33, 0.5]))
+    assert int(sol3.stats["num_steps"]) == 6
+    np.testing.assert_allclose(sol3.q[0], sol.q[1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(sol3.qd[0], sol.qd[1], rtol=0, atol=1e-14)
+    sol4 = run(theta0, thetadot0, args, 0.5 / 6, jnp.array([0.25, 0.5]))
+    assert int(sol4.stats["num_steps"]) == 6
     # Same number of steps, slightly different sizes: close, not equal.
-    assert 0 < float(jnp.linalg.norm(q4[1] - q3[1])) < 1e-3
+    assert 0 < float(jnp.linalg.norm(sol4.q[1] - sol3.q[1])) < 1e-3
 
 
 def test_jit_vmap_matches_loop(runners):
@@ -450,9 +471,9 @@ def test_jit_vmap_matches_loop(runners):
     batched = jax.vmap(one)(thetas, lengths)
     for i in range(3):
         single = one(thetas[i], lengths[i])
-        row = jax.tree.map(lambda x, i=i: x[i], batched[0])
-        assert tree_allclose(row, single[0], rtol=1e-13, atol=1e-14)
-    assert bool(jnp.all(batched[1] == cjax.RESULTS.successful))
+        row = jax.tree.map(lambda x, i=i: x[i], (batched.q, batched.qd))
+        assert tree_allclose(row, (single.q, single.qd), rtol=1e-13, atol=1e-14)
+    assert bool(jnp.all(batched.result == cjax.RESULTS.successful))
 
 
 def test_gradients_match_finite_differences(runners):
@@ -463,8 +484,8 @@ def test_gradients_match_finite_differences(runners):
 
     def objective(p):
         args = pendulum.default_args(l=p[0], g=p[1])
-        (q, qd), _, _ = run(p[2], p[3], args, 0.02, ts)
-        return q[-1, 0] + 0.3 * qd[-1, 1] + q[0, 1]
+        sol = run(p[2], p[3], args, 0.02, ts)
+        return sol.q[-1, 0] + 0.3 * sol.qd[-1, 1] + sol.q[0, 1]
 
     p = jnp.array([0.8, 9.81, 0.7, 0.3])
     grad = jax.jit(jax.grad(objective))(p)
@@ -478,21 +499,35 @@ def test_failures_are_reported(runners):
     theta0 = jnp.asarray(0.5)
     zero = jnp.asarray(0.0)
     # Step budget: 1,000 steps of 0.001 reach t = 1 but not 2.
-    (q, _), result, stats = run(theta0, zero, args, 0.001, jnp.array([1.0, 2.0]))
-    assert result == cjax.RESULTS.max_steps_reached
-    assert int(stats["num_steps"]) == 1000
-    assert bool(jnp.all(jnp.isfinite(q[0]))) and bool(jnp.all(jnp.isinf(q[1])))
+    sol = run(theta0, zero, args, 0.001, jnp.array([1.0, 2.0]))
+    assert sol.result == cjax.RESULTS.max_steps_reached
+    assert int(sol.stats["num_steps"]) == 1000
+    assert bool(jnp.all(jnp.isfinite(sol.q[0]))) and bool(jnp.all(jnp.isinf(sol.q[1])))
     # Bad grid.
-    _, result, _ = run(theta0, zero, args, -0.1, jnp.array([1.0]))
-    assert result == cjax.RESULTS.invalid_time_grid
-    _, result, _ = run(theta0, zero, args, 0.1, jnp.array([0.5, 0.2]))
-    assert result == cjax.RESULTS.invalid_time_grid
-    _, result, _ = run(theta0, zero, dict(args, g=jnp.asarray(jnp.nan)), 0.1, TS)
-    assert result == cjax.RESULTS.invalid_input
+    sol = run(theta0, zero, args, -0.1, jnp.array([1.0]))
+    assert sol.result == cjax.RESULTS.invalid_time_grid
+    sol = run(theta0, zero, args, 0.1, jnp.array([0.5, 0.2]))
+    assert sol.result == cjax.RESULTS.invalid_time_grid
+    sol = run(theta0, zero, dict(args, g=jnp.asarray(jnp.nan)), 0.1, TS)
+    assert sol.result == cjax.RESULTS.invalid_input
     # One Newton iteration cannot reach the tolerance on the nonlinear constraint.
     one_iteration = _pendulum_runner(cjax.VariationalIntegrator(newton_steps=1))
-    _, result, _ = one_iteration(theta0, jnp.asarray(1.0), args, 0.1, TS)
-    assert result == cjax.RESULTS.variational_step_failed
+    sol = one_iteration(theta0, jnp.asarray(1.0), args, 0.1, TS)
+    assert sol.result == cjax.RESULTS.variational_step_failed
+    # With `throw=True` (the default) a failure raises, naming its cause.
+    q0, qd0 = pendulum.state(theta0, zero, args)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="newton_steps"):
+        cjax.integrate_variational(
+            cjax.VariationalIntegrator(newton_steps=1),
+            pendulum.system(),
+            0.0,
+            1.0,
+            0.1,
+            q0,
+            qd0,
+            args,
+            ts_save=TS,
+        )
 
 
 def test_bad_structure_raises():
@@ -501,19 +536,21 @@ def test_bad_structure_raises():
     q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
     vi = cjax.VariationalIntegrator()
     with pytest.raises(ValueError, match="dt0=0.01"):
-        cjax.integrate_variational(vi, system, 0.0, 1.0, None, q0, qd0, args, TS)
+        cjax.integrate_variational(
+            vi, system, 0.0, 1.0, None, q0, qd0, args, ts_save=TS
+        )
     with pytest.raises(ValueError, match="AbstractVariationalIntegrator"):
         cjax.integrate_variational(
-            diffrax.Tsit5(), system, 0.0, 1.0, 0.1, q0, qd0, args, TS
+            diffrax.Tsit5(), system, 0.0, 1.0, 0.1, q0, qd0, args, ts_save=TS
         )
     with pytest.raises(ValueError, match="1-dimensional"):
         cjax.integrate_variational(
-            vi, system, 0.0, 1.0, 0.1, q0, qd0, args, jnp.zeros((2, 2))
+            vi, system, 0.0, 1.0, 0.1, q0, qd0, args, ts_save=jnp.zeros((2, 2))
         )
     with pytest.raises(ValueError, match="newton_steps"):
         cjax.VariationalIntegrator(newton_steps=0)
-    with pytest.raises(ValueError, match="discretization"):
-        cjax.VariationalIntegrator(discretization="midpoint")
+    with pytest.raises(ValueError, match="quadrature"):
+        cjax.VariationalIntegrator(quadrature="midpoint")
 
 
 def test_selectable_in_simulate():
