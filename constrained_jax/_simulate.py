@@ -600,24 +600,10 @@ class _AbstractDriver(eqx.Module):
         """Raise a `ValueError` for the options this solver cannot honour."""
 
     @abc.abstractmethod
-    def run(
-        self,
-        system,
-        t0,
-        t1,
-        q0,
-        qd0,
-        args,
-        ts,
-        *,
-        stabilization,
-        stepsize_controller,
-        dt0,
-        max_steps,
-        adjoint,
-        progress_meter,
-    ) -> _Run:
-        """Integrate from `(q0, qd0)` at `t0` to `t1`, saving at `ts`."""
+    def run(self, system, t0, t1, q0, qd0, args, ts, **options) -> _Run:
+        """Integrate from `(q0, qd0)` at `t0` to `t1`, saving at `ts`; `options` are
+        `simulate`'s `stabilization`, `stepsize_controller`, `dt0`, `max_steps`,
+        `adjoint` and `progress_meter`."""
 
 
 class _DiffraxDriver(_AbstractDriver):
