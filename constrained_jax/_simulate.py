@@ -385,7 +385,7 @@ def _find_unilateral(system):
 _DIVERGED = 0.25
 # Where the watched multiplier of a `Unilateral` is sampled inside each step of the
 # attached phase (fractions of the step), besides its end.
-_WATCH_SAMPLES = (0.25, 0.5, 0.75)
+_WATCH_SAMPLES = (1 / 3, 2 / 3)
 # A step of the attached phase is refined while the multiplier at the samples departs
 # from the chord between its end values by more than this fraction of the larger end
 # value (it is then not resolved well enough to trust its sign between samples).
