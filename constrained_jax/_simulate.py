@@ -6,8 +6,11 @@ energy and constraint violation are computed afterwards, only at the saved times
 only if asked for (`SaveAt`).
 """
 
+import abc
+import functools
 import warnings
 from collections.abc import Callable
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -15,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Unilateral
 from ._misc import (
@@ -28,20 +31,13 @@ from ._misc import (
     SIMULATE_TOLERANCE,
 )
 from ._results import RESULTS
-from ._stabilization import (
-    AbstractStabilization,
-    Baumgarte,
-    project_state,
-    ProjectedSolver,
-    Projection,
-    resolve_implicit_tolerances,
-    Unstabilized,
-)
+from ._stabilization import AbstractStabilization, project_state, Unstabilized
 from ._system import LagrangianSystem
 from ._variational_integrator import (
     AbstractVariationalIntegrator,
     integrate_variational,
 )
+from ._wrapped_solver import AbstractForwardingSolver, prepare_to_wrap
 
 
 class SaveAt(eqx.Module):
@@ -119,9 +115,7 @@ def consistent_initial_state(
 def _vector_field(system, stabilization):
     def field(t, y, args):
         q, qd = y
-        correction = None
-        if isinstance(stabilization, Baumgarte):
-            correction = stabilization.bias_correction(system, q, qd, t, args)
+        correction = stabilization.bias_correction(system, q, qd, t, args)
         qdd, _, singular = system.solve_accelerations(q, qd, t, args, correction)
         # A singular KKT matrix makes the step fail (NaN rejected by the controller);
         # the status is recovered afterwards at the saved states.
@@ -179,8 +173,9 @@ def simulate(
     - `saveat`: a [`constrained_jax.SaveAt`][].
     - `progress_meter`: diffrax's progress meter for a long single run, e.g.
         `diffrax.TqdmProgressMeter()` (a bar per phase when a `Unilateral`
-        constraint releases; ignored by the variational integrator). For many runs
-        use [`constrained_jax.sweep`][], which has its own bar over chunks.
+        constraint releases; refused by the variational integrator, which is not a
+        diffrax loop). For many runs use [`constrained_jax.sweep`][], which has its
+        own bar over chunks.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:** a [`constrained_jax.Trajectory`][].
@@ -223,27 +218,8 @@ def simulate(
             "`progress_meter` must be a diffrax progress meter, e.g. "
             "`diffrax.TqdmProgressMeter()`."
         )
-    if isinstance(solver, AbstractVariationalIntegrator):
-        if dt0 is None:
-            raise ValueError(
-                "A variational integrator takes fixed steps: pass the step size, e.g. "
-                "`simulate(..., solver=cjax.VariationalIntegrator(), dt0=0.01)`."
-            )
-        if not isinstance(stabilization, Unstabilized):
-            raise ValueError(
-                "A variational integrator enforces the constraints itself at every "
-                "step: use `stabilization=cjax.Unstabilized()` (the default)."
-            )
-        if _find_unilateral(system) is not None:
-            raise ValueError(
-                "Release events (`cjax.Unilateral`) are not implemented for the "
-                "variational integrator; use a diffrax solver."
-            )
-    elif not isinstance(solver, diffrax.AbstractSolver):
-        raise ValueError(
-            "`solver` must be a diffrax solver (e.g. `diffrax.Tsit5()`) or "
-            f"`cjax.VariationalIntegrator()`, got {type(solver).__name__}."
-        )
+    driver = _driver(solver)
+    driver.check(system, stabilization, dt0, progress_meter)
     check_max_steps(max_steps)
     args = as_traced_args(args)
     t0, t1 = t_span
@@ -263,7 +239,7 @@ def simulate(
         q0,
         qd0,
         args,
-        solver,
+        driver,
         stabilization,
         stepsize_controller,
         saveat,
@@ -409,7 +385,7 @@ def _find_unilateral(system):
 _DIVERGED = 0.25
 # Where the watched multiplier of a `Unilateral` is sampled inside each step of the
 # attached phase (fractions of the step), besides its end.
-_WATCH_SAMPLES = (0.25, 0.5, 0.75)
+_WATCH_SAMPLES = (1 / 3, 2 / 3)
 # A step of the attached phase is refined while the multiplier at the samples departs
 # from the chord between its end values by more than this fraction of the larger end
 # value (it is then not resolved well enough to trust its sign between samples).
@@ -446,24 +422,7 @@ def _diverged_condition(system, q_ref, t_ref, args):
     return condition
 
 
-def _fix_scan_kind(solver, adjoint):
-    """Set a Runge-Kutta solver's `scan_kind` before wrapping it.
-
-    diffrax's adjoints set `scan_kind` (for forward-mode autodiff through the stages)
-    on a Runge-Kutta solver whose `scan_kind` is `None`, with `eqx.tree_at`; diffrax
-    forwards `isinstance` through a wrapped solver, so it would try that on our
-    wrapper, which has no such field. Setting it on the inner solver, as the adjoint
-    would, keeps the wrapper out of it (the wrappers forward `scan_kind`)."""
-    rk = (diffrax.AbstractRungeKutta, diffrax.AbstractSRK)
-    if isinstance(solver, rk) and getattr(solver, "scan_kind", "") is None:
-        kind = "lax" if isinstance(adjoint, diffrax.ForwardMode) else "bounded"
-        solver = eqx.tree_at(
-            lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None
-        )
-    return solver
-
-
-class _WatchedSolver(diffrax.AbstractWrappedSolver):
+class _WatchedSolver(AbstractForwardingSolver):
     """The attached phase's solver: samples the watched multiplier inside each step.
 
     diffrax evaluates an event condition only at the ends of the steps, and the state
@@ -487,35 +446,6 @@ class _WatchedSolver(diffrax.AbstractWrappedSolver):
     solver: diffrax.AbstractSolver
     watch: Callable
     adaptive: bool = eqx.field(static=True)
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def root_finder(self):
-        return self.solver.root_finder  # pyright: ignore
-
-    @property
-    def scan_kind(self):
-        return getattr(self.solver, "scan_kind", None)
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
 
     def init(self, terms, t0, t1, y0, args):
         return self.solver.init(terms, t0, t1, y0, args), self.watch(t0, y0, args)
@@ -548,8 +478,18 @@ class _WatchedSolver(diffrax.AbstractWrappedSolver):
             )
         return y1, y_error, dense_info, (inner_state, w1), result
 
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)
+
+class _Phase(eqx.Module):
+    """One diffrax solve (`_run_phase`): the states at the save times, the last state
+    reached, and diffrax's result, statistics and event mask."""
+
+    saved: tuple[Float[Array, "T n"], Float[Array, "T n"]] | None
+    t_end: Float[Array, ""]
+    q_end: Float[Array, " n"]
+    qd_end: Float[Array, " n"]
+    result: diffrax.RESULTS
+    stats: dict
+    event_mask: Any
 
 
 def _run_phase(
@@ -557,36 +497,31 @@ def _run_phase(
     t0,
     t1,
     y0,
+    ts,
+    event,
+    watch=None,
+    *,
     args,
     solver,
     stabilization,
     stepsize_controller,
-    ts,
     dt0,
     max_steps,
     adjoint,
     progress_meter,
-    event,
-    watch=None,
-):
-    """One diffrax solve; returns the states at `ts` (or `None`), the last state
-    reached and its time, the result, the stats and diffrax's event mask.
+    adaptive=True,
+) -> _Phase:
+    """One diffrax solve of `system` from `(t0, y0)` to `t1`, saving at `ts` (or not,
+    if `None`).
 
     `event` is a tuple of condition functions (the phase's own, if any, then the
     divergence check); `watch`, if given, is the multiplier the attached phase
-    samples inside each step (`_WatchedSolver`)."""
-    wrapped = isinstance(stabilization, Projection) or watch is not None
-    if wrapped:
-        solver = _fix_scan_kind(solver, adjoint)
-    if isinstance(stabilization, Projection):
-        solver = resolve_implicit_tolerances(solver, stepsize_controller)
-        solver = ProjectedSolver(solver, system, stabilization.iterations)
+    samples inside each step (`_WatchedSolver`), under an `adaptive` controller or
+    not."""
+    solver = stabilization.wrap_solver(solver, system, stepsize_controller, adjoint)
     if watch is not None:
-        solver = _WatchedSolver(
-            solver,
-            watch,
-            isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController),
-        )
+        solver = prepare_to_wrap(solver, stepsize_controller, adjoint)
+        solver = _WatchedSolver(solver, watch, adaptive)
     terms = diffrax.ODETerm(_vector_field(system, stabilization))
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
@@ -608,9 +543,272 @@ def _run_phase(
         throw=False,
     )
     (q_end, qd_end) = sol.ys[0]
-    end = (sol.ts[0][0], q_end[0], qd_end[0])
-    saved = sol.ys[1] if ts is not None else None
-    return saved, end, sol.result, sol.stats, sol.event_mask
+    return _Phase(
+        saved=sol.ys[1] if ts is not None else None,
+        t_end=sol.ts[0][0],
+        q_end=q_end[0],
+        qd_end=qd_end[0],
+        result=sol.result,
+        stats=sol.stats,
+        event_mask=sol.event_mask,
+    )
+
+
+class _ReleasePhases(eqx.Module):
+    """Where the save times of a release run fall: in the `attached` phase (the full
+    system), after re-contact (`beyond`: not computed, `inf`), or else in the free
+    phase (the system `free`, without the `Unilateral`, whose multipliers fill the
+    rows `keep_rows` of the full system's)."""
+
+    attached: Bool[Array, " T"]
+    beyond: Bool[Array, " T"]
+    free: LagrangianSystem
+    keep_rows: Int[Array, " k_free"]
+
+    def combine(self, attached: Float[Array, "T n"], free: Float[Array, "T n"]):
+        """The attached phase's rows where attached, `inf` beyond re-contact, and
+        the free phase's rows elsewhere."""
+        return jnp.where(
+            self.attached[:, None],
+            attached,
+            jnp.where(self.beyond[:, None], jnp.inf, free),
+        )
+
+
+class _Run(eqx.Module):
+    """What a driver's integration gives `_simulate`: the states at the save times,
+    the last state reached, the result and statistics, and for a release run the
+    [`constrained_jax.Release`][] and its `_ReleasePhases` (`None` otherwise)."""
+
+    q: Float[Array, "T n"]
+    qd: Float[Array, "T n"]
+    t_end: Float[Array, ""]
+    q_end: Float[Array, " n"]
+    qd_end: Float[Array, " n"]
+    result: RESULTS
+    stats: dict
+    release: Release | None = None
+    phases: _ReleasePhases | None = None
+
+
+class _AbstractDriver(eqx.Module):
+    """How `simulate` runs one kind of `solver`: `check` (in `simulate`, at trace
+    time) refuses what it cannot do, `run` (in `_simulate`) integrates."""
+
+    @abc.abstractmethod
+    def check(self, system, stabilization, dt0, progress_meter) -> None:
+        """Raise a `ValueError` for the options this solver cannot honour."""
+
+    @abc.abstractmethod
+    def run(self, system, t0, t1, q0, qd0, args, ts, **options) -> _Run:
+        """Integrate from `(q0, qd0)` at `t0` to `t1`, saving at `ts`; `options` are
+        `simulate`'s `stabilization`, `stepsize_controller`, `dt0`, `max_steps`,
+        `adjoint` and `progress_meter`."""
+
+
+class _DiffraxDriver(_AbstractDriver):
+    """A diffrax solver: one phase, or for a `Unilateral` an attached and a free one."""
+
+    solver: diffrax.AbstractSolver
+
+    def check(self, system, stabilization, dt0, progress_meter):
+        pass  # Every stabilization, release events and progress meters.
+
+    def run(self, system, t0, t1, q0, qd0, args, ts, **options):
+        phase = functools.partial(_run_phase, args=args, solver=self.solver, **options)
+        found = _find_unilateral(system)
+        if found is not None:
+            adaptive = isinstance(
+                options["stepsize_controller"],
+                diffrax.AbstractAdaptiveStepSizeController,
+            )
+            return _release_run(
+                phase, system, found, t0, t1, q0, qd0, args, ts, adaptive
+            )
+        diverged_event = diffrax.Event(_diverged_condition(system, q0, t0, args))
+        one = phase(system, t0, t1, (q0, qd0), ts, diverged_event)
+        q, qd = one.saved
+        result = RESULTS.where(
+            one.result == diffrax.RESULTS.event_occurred,
+            RESULTS.diverged,
+            RESULTS.promote(one.result),
+        )
+        return _Run(q, qd, one.t_end, one.q_end, one.qd_end, result, one.stats)
+
+
+class _VariationalDriver(_AbstractDriver):
+    """A [`constrained_jax.AbstractVariationalIntegrator`][]: fixed steps that land on
+    the save times, its own loop (not diffrax's), the constraints kept at every step."""
+
+    integrator: AbstractVariationalIntegrator
+
+    def check(self, system, stabilization, dt0, progress_meter):
+        if dt0 is None:
+            raise ValueError(
+                "A variational integrator takes fixed steps: pass the step size, e.g. "
+                "`simulate(..., solver=cjax.VariationalIntegrator(), dt0=0.01)`."
+            )
+        if not isinstance(stabilization, Unstabilized):
+            raise ValueError(
+                "A variational integrator enforces the constraints itself at every "
+                "step: use `stabilization=cjax.Unstabilized()` (the default)."
+            )
+        if _find_unilateral(system) is not None:
+            raise ValueError(
+                "Release events (`cjax.Unilateral`) are not implemented for the "
+                "variational integrator; use a diffrax solver."
+            )
+        if not isinstance(progress_meter, diffrax.NoProgressMeter):
+            raise ValueError(
+                "`progress_meter` is not supported by the variational integrator (it "
+                "runs its own loop, not diffrax's): leave it to its default "
+                "`diffrax.NoProgressMeter()`, use a diffrax solver for a progress bar "
+                "of one run, or `cjax.sweep` for a bar over many runs."
+            )
+
+    def run(self, system, t0, t1, q0, qd0, args, ts, *, dt0, max_steps, **options):
+        del options  # Checked in `check`: nothing else to honour.
+        (q, qd), result, stats = integrate_variational(
+            self.integrator, system, t0, t1, dt0, q0, qd0, args, ts, max_steps=max_steps
+        )
+        return _Run(q, qd, ts[-1], q[-1], qd[-1], result, stats)
+
+
+@functools.singledispatch
+def _driver(solver) -> _AbstractDriver:
+    """The driver of a `solver`: dispatched on its type (the solver families are not
+    ours to give a method), a `ValueError` for anything else."""
+    raise ValueError(
+        "`solver` must be a diffrax solver (e.g. `diffrax.Tsit5()`) or "
+        f"`cjax.VariationalIntegrator()`, got {type(solver).__name__}."
+    )
+
+
+@_driver.register
+def _(solver: diffrax.AbstractSolver):
+    return _DiffraxDriver(solver)
+
+
+@_driver.register
+def _(solver: AbstractVariationalIntegrator):
+    return _VariationalDriver(solver)
+
+
+def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _Run:
+    """Phase 1, attached, until the `Unilateral`'s multiplier falls through zero;
+    phase 2, free, from there to `t1` or to re-contact."""
+    index, group = found
+    free = system.without(index)
+    row = sum(
+        c.num_constraints(q0.shape[0], args, q0.dtype)
+        for c in system.constraints[:index]
+    )
+
+    def contact_force(t, y, args, **kwargs):
+        del kwargs
+        _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
+        return group.sign * lam[row]
+
+    at_start = contact_force(t0, (q0, qd0), args) < 0
+    # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
+    root_tol = float_tolerance(1e-12, 100.0, q0.dtype)
+    release_event = diffrax.Event(
+        (contact_force, _diverged_condition(system, q0, t0, args)),
+        root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
+    )
+    # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
+    # phase if it already has the wrong sign).
+    # (diffrax needs t0 < t1: the empty phase is a tiny one, discarded.)
+    tiny = 64 * jnp.finfo(q0.dtype).eps * (1 + jnp.abs(t0))
+    t_attach_end = jnp.where(at_start, t0 + tiny, t1)
+    attached_phase = phase(
+        system,
+        t0,
+        t_attach_end,
+        (q0, qd0),
+        jnp.clip(ts, t0, t_attach_end),
+        release_event,
+        contact_force,
+        adaptive=adaptive,
+    )
+    result1 = attached_phase.result
+    stopped = result1 == diffrax.RESULTS.event_occurred
+    by_release = attached_phase.event_mask[0]
+    released_by_event = stopped & by_release
+    # (A fixed-step controller never reports `dt_min_reached`: it is `_WatchedSolver`
+    # signalling a missed release.)
+    missed = False if adaptive else result1 == diffrax.RESULTS.dt_min_reached
+    result1 = RESULTS.where(
+        stopped,
+        RESULTS.where(by_release, RESULTS.successful, RESULTS.diverged),
+        RESULTS.where(missed, RESULTS.release_missed, RESULTS.promote(result1)),
+    )
+    released = at_start | released_by_event
+    t_rel = jnp.where(at_start, t0, jnp.where(released, attached_phase.t_end, t1))
+    q_rel = jnp.where(at_start, q0, attached_phase.q_end)
+    qd_rel = jnp.where(at_start, qd0, attached_phase.qd_end)
+    result1 = RESULTS.where(at_start, RESULTS.successful, result1)
+    # Phase 2, free: from the release to t1 (empty if never released), ending at
+    # re-contact if a gap is given.
+    diverged_free = _diverged_condition(free, q_rel, t_rel, args)
+    recontact_event = diffrax.Event((diverged_free,))
+    if group.gap is not None:
+        # The gap is zero at release: re-contact is when it falls below
+        # -delta, delta = sqrt(eps) (1 + |q_release|), so that round-off right
+        # after release is not taken for a collision.
+        delta = jnp.sqrt(jnp.finfo(q0.dtype).eps) * (1 + jnp.max(jnp.abs(q_rel)))
+        recontact_event = diffrax.Event(
+            (
+                diverged_free,
+                lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
+            ),
+            root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
+        )
+    free_phase = phase(
+        free, t_rel, t1, (q_rel, qd_rel), jnp.clip(ts, t_rel, t1), recontact_event
+    )
+    stopped2 = free_phase.result == diffrax.RESULTS.event_occurred
+    by_divergence = free_phase.event_mask[0]
+    recontact = stopped2 & jnp.invert(by_divergence)
+    result2 = RESULTS.where(
+        stopped2,
+        RESULTS.where(by_divergence, RESULTS.diverged, RESULTS.successful),
+        RESULTS.promote(free_phase.result),
+    )
+    n = q0.shape[0]
+    k_all = sum(c.num_constraints(n, args, q0.dtype) for c in system.constraints)
+    k_group = group.num_constraints(n, args, q0.dtype)
+    phases = _ReleasePhases(
+        attached=(ts <= t_rel) & jnp.invert(at_start),
+        # After re-contact nothing is computed: those save times are inf.
+        beyond=recontact & (ts > free_phase.t_end),
+        free=free,
+        keep_rows=jnp.asarray(
+            [j for j in range(k_all) if not row <= j < row + k_group], int
+        ),
+    )
+    stats1, stats2 = attached_phase.stats, free_phase.stats
+    return _Run(
+        q=phases.combine(attached_phase.saved[0], free_phase.saved[0]),
+        qd=phases.combine(attached_phase.saved[1], free_phase.saved[1]),
+        t_end=free_phase.t_end,
+        q_end=free_phase.q_end,
+        qd_end=free_phase.qd_end,
+        result=RESULTS.where(result1 == RESULTS.successful, result2, result1),
+        stats={
+            k: stats1[k] + stats2[k] for k in stats1 if k in stats2 and k != "max_steps"
+        },
+        release=Release(
+            released=released,
+            at_start=at_start,
+            time=t_rel,
+            q=q_rel,
+            qd=qd_rel,
+            recontact=recontact,
+            recontact_time=jnp.where(recontact, free_phase.t_end, t1),
+        ),
+        phases=phases,
+    )
 
 
 @eqx.filter_jit
@@ -621,7 +819,7 @@ def _simulate(
     q0,
     qd0,
     args,
-    solver,
+    driver,
     stabilization,
     stepsize_controller,
     saveat,
@@ -654,160 +852,30 @@ def _simulate(
     # and report `invalid_time_grid`.)
     ts = jnp.where(grid_ok, ts, t0)
 
-    phase = lambda sys_, t_start, t_stop, y, ts_, event, watch=None: _run_phase(
-        sys_,
-        t_start,
-        t_stop,
-        y,
+    run = driver.run(
+        system,
+        t0,
+        t1,
+        q0,
+        qd0,
         args,
-        solver,
-        stabilization,
-        stepsize_controller,
-        ts_,
-        dt0,
-        max_steps,
-        adjoint,
-        progress_meter,
-        event,
-        watch,
+        ts,
+        stabilization=stabilization,
+        stepsize_controller=stepsize_controller,
+        dt0=dt0,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        progress_meter=progress_meter,
     )
-    found = _find_unilateral(system)
-    release = None
-    if isinstance(solver, AbstractVariationalIntegrator):
-        (q, qd), result, stats = integrate_variational(
-            solver, system, t0, t1, dt0, q0, qd0, args, ts, max_steps=max_steps
-        )
-        end = (ts[-1], q[-1], qd[-1])
-        systems_at = None
-    elif found is None:
-        diverged_event = diffrax.Event(_diverged_condition(system, q0, t0, args))
-        saved, end, result, stats, _ = phase(
-            system, t0, t1, (q0, qd0), ts, diverged_event
-        )
-        q, qd = saved
-        result = RESULTS.where(
-            result == diffrax.RESULTS.event_occurred,
-            RESULTS.diverged,
-            RESULTS.promote(result),
-        )
-        systems_at = None
+    phases = run.phases
+    # Saved states between steps are interpolated: the stabilization may correct them
+    # too (each phase with its own system; states after re-contact stay inf).
+    if phases is None:
+        q, qd = stabilization.project_saved(system, run.q, run.qd, ts, args)
     else:
-        index, group = found
-        free = system.without(index)
-        row = sum(
-            c.num_constraints(q0.shape[0], args, q0.dtype)
-            for c in system.constraints[:index]
-        )
-
-        def contact_force(t, y, args, **kwargs):
-            del kwargs
-            _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
-            return group.sign * lam[row]
-
-        at_start = contact_force(t0, (q0, qd0), args) < 0
-        # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
-        root_tol = float_tolerance(1e-12, 100.0, q0.dtype)
-        release_event = diffrax.Event(
-            (contact_force, _diverged_condition(system, q0, t0, args)),
-            root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
-        )
-        # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
-        # phase if it already has the wrong sign).
-        # (diffrax needs t0 < t1: the empty phase is a tiny one, discarded.)
-        tiny = 64 * jnp.finfo(q0.dtype).eps * (1 + jnp.abs(t0))
-        t_attach_end = jnp.where(at_start, t0 + tiny, t1)
-        saved1, end1, result1, stats, mask1 = phase(
-            system,
-            t0,
-            t_attach_end,
-            (q0, qd0),
-            jnp.clip(ts, t0, t_attach_end),
-            release_event,
-            contact_force,
-        )
-        stopped = result1 == diffrax.RESULTS.event_occurred
-        released_by_event = stopped & mask1[0]
-        missed = result1 == diffrax.RESULTS.dt_min_reached
-        if isinstance(stepsize_controller, diffrax.AbstractAdaptiveStepSizeController):
-            missed = False
-        result1 = RESULTS.where(
-            stopped,
-            RESULTS.where(mask1[0], RESULTS.successful, RESULTS.diverged),
-            RESULTS.where(missed, RESULTS.release_missed, RESULTS.promote(result1)),
-        )
-        t_rel, q_rel, qd_rel = end1
-        released = at_start | released_by_event
-        t_rel = jnp.where(at_start, t0, jnp.where(released, t_rel, t1))
-        q_rel = jnp.where(at_start, q0, q_rel)
-        qd_rel = jnp.where(at_start, qd0, qd_rel)
-        result1 = RESULTS.where(at_start, RESULTS.successful, result1)
-        # Phase 2, free: from the release to t1 (empty if never released), ending at
-        # re-contact if a gap is given.
-        diverged_free = _diverged_condition(free, q_rel, t_rel, args)
-        recontact_event = diffrax.Event((diverged_free,))
-        if group.gap is not None:
-            # The gap is zero at release: re-contact is when it falls below
-            # -delta, delta = sqrt(eps) (1 + |q_release|), so that round-off right
-            # after release is not taken for a collision.
-            delta = jnp.sqrt(jnp.finfo(q0.dtype).eps) * (1 + jnp.max(jnp.abs(q_rel)))
-            recontact_event = diffrax.Event(
-                (
-                    diverged_free,
-                    lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
-                ),
-                root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
-            )
-        ts2 = jnp.clip(ts, t_rel, t1)
-        saved2, end2, result2, stats2, mask2 = phase(
-            free, t_rel, t1, (q_rel, qd_rel), ts2, recontact_event
-        )
-        stopped2 = result2 == diffrax.RESULTS.event_occurred
-        recontact = stopped2 & jnp.invert(mask2[0])
-        result2 = RESULTS.where(
-            stopped2,
-            RESULTS.where(mask2[0], RESULTS.diverged, RESULTS.successful),
-            RESULTS.promote(result2),
-        )
-        t_end2 = end2[0]
-        attached = (ts <= t_rel) & jnp.invert(at_start)
-        # After re-contact nothing is computed: those save times are inf.
-        beyond = recontact & (ts > t_end2)
-        pick = lambda a, b: jnp.where(
-            attached[:, None], a, jnp.where(beyond[:, None], jnp.inf, b)
-        )
-        q = pick(saved1[0], saved2[0])
-        qd = pick(saved1[1], saved2[1])
-        result = RESULTS.where(result1 == RESULTS.successful, result2, result1)
-        end = end2
-        stats = {
-            k: stats[k] + stats2[k] for k in stats if k in stats2 and k != "max_steps"
-        }
-        release = Release(
-            released=released,
-            at_start=at_start,
-            time=t_rel,
-            q=q_rel,
-            qd=qd_rel,
-            recontact=recontact,
-            recontact_time=jnp.where(recontact, t_end2, t1),
-        )
-        systems_at = (attached, free, group, row, beyond)
-
-    if isinstance(stabilization, Projection):
-        # Saved states between steps are interpolated: project them as well.
-        def project(q_, qd_, t_, sys_):
-            return project_state(sys_, q_, qd_, t_, args, stabilization.iterations)
-
-        if systems_at is None:
-            q, qd = jax.vmap(lambda a, b, c: project(a, b, c, system))(q, qd, ts)
-        else:
-            attached, free = systems_at[0], systems_at[1]
-            qa, qda = jax.vmap(lambda a, b, c: project(a, b, c, system))(q, qd, ts)
-            qf, qdf = jax.vmap(lambda a, b, c: project(a, b, c, free))(q, qd, ts)
-            # (States after re-contact stay inf, not the NaN a projection makes.)
-            beyond = systems_at[4][:, None]
-            q = jnp.where(attached[:, None], qa, jnp.where(beyond, jnp.inf, qf))
-            qd = jnp.where(attached[:, None], qda, jnp.where(beyond, jnp.inf, qdf))
+        qa, qda = stabilization.project_saved(system, run.q, run.qd, ts, args)
+        qf, qdf = stabilization.project_saved(phases.free, run.q, run.qd, ts, args)
+        q, qd = phases.combine(qa, qf), phases.combine(qda, qdf)
 
     def derived(q_, qd_, t_, sys_, keep_rows):
         out = {}
@@ -827,18 +895,17 @@ def _simulate(
 
     n = q0.shape[0]
     system_k = sum(c.num_constraints(n, args, q0.dtype) for c in system.constraints)
-    if systems_at is None:
+    if phases is None:
         extra = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
     else:
-        attached, free, group, row, _ = systems_at
-        k_group = group.num_constraints(n, args, q0.dtype)
-        keep = jnp.asarray(
-            [j for j in range(system_k) if not row <= j < row + k_group], int
-        )
         ea = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
-        ef = jax.vmap(lambda a, b, c: derived(a, b, c, free, keep))(q, qd, ts)
+        ef = jax.vmap(lambda a, b, c: derived(a, b, c, phases.free, phases.keep_rows))(
+            q, qd, ts
+        )
         extra = jax.tree.map(
-            lambda a, b: jnp.where(attached.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
+            lambda a, b: jnp.where(
+                phases.attached.reshape((-1,) + (1,) * (a.ndim - 1)), a, b
+            ),
             ea,
             ef,
         )
@@ -846,8 +913,11 @@ def _simulate(
     # A run that failed where the KKT matrix is singular failed because of it: the
     # vector field returns NaN there, so the steps were rejected until the budget ran
     # out. Checked at the last state reached (and at the saved states if available).
-    end_system = system if systems_at is None else systems_at[1]
-    _, _, singular = end_system.solve_accelerations(end[1], end[2], end[0], args)
+    end_system = system if phases is None else phases.free
+    _, _, singular = end_system.solve_accelerations(
+        run.q_end, run.qd_end, run.t_end, args
+    )
+    result = run.result
     if saveat.multipliers:
         reached = jnp.all(jnp.isfinite(q), axis=1)
         singular = singular | jnp.any(extra["singular"] & reached)
@@ -856,7 +926,7 @@ def _simulate(
     )
     # Fixed steps are not checked by diffrax: a blow-up to inf/NaN must not pass as
     # success.
-    end_finite = all_finite((end[1], end[2]))
+    end_finite = all_finite((run.q_end, run.qd_end))
     result = RESULTS.where(
         (result == RESULTS.successful) & jnp.invert(end_finite),
         RESULTS.nonfinite,
@@ -877,8 +947,8 @@ def _simulate(
         energy=extra.get("energy"),
         violation=violation,
         result=result,
-        stats=stats,
-        release=release,
+        stats=run.stats,
+        release=run.release,
     )
     if throw:
         traj = result.error_if(traj, result != RESULTS.successful)

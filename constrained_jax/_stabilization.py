@@ -15,21 +15,60 @@ through their second derivative, so round-off and truncation errors make `G` and
   the same KKT matrix as the dynamics, so a singular `M` is fine.
 """
 
+import abc
 from typing import Any
 
 import diffrax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
-from diffrax._root_finder import use_stepsize_tol
 from jaxtyping import Array, Float
+
+from ._wrapped_solver import AbstractForwardingSolver, prepare_to_wrap
 
 
 class AbstractStabilization(eqx.Module):
-    """How `simulate` keeps the constraints satisfied (see the module docstring)."""
+    """How `simulate` keeps the constraints satisfied (see the module docstring).
+
+    The protocol is the three places where a strategy can act: the vector field
+    (`bias_correction`), the diffrax solver (`wrap_solver`) and the saved states
+    (`project_saved`).
+    """
+
+    @abc.abstractmethod
+    def bias_correction(self, system, q, qd, t, args) -> Float[Array, " k"] | None:
+        """The term added to the constraint bias of the acceleration solve,
+        `A qddot + bias + correction = 0`, shape `(k,)`; or `None` for none."""
+
+    @abc.abstractmethod
+    def wrap_solver(
+        self,
+        solver: diffrax.AbstractSolver,
+        system,
+        stepsize_controller: diffrax.AbstractStepSizeController,
+        adjoint: diffrax.AbstractAdjoint,
+    ) -> diffrax.AbstractSolver:
+        """The diffrax solver that integrates `system` with this stabilization."""
+
+    @abc.abstractmethod
+    def project_saved(
+        self, system, q: Float[Array, "T n"], qd: Float[Array, "T n"], ts, args
+    ) -> tuple[Float[Array, "T n"], Float[Array, "T n"]]:
+        """The states saved at the times `ts` (interpolated between steps), as the
+        trajectory reports them."""
 
 
 class Unstabilized(AbstractStabilization):
     """Integrate the acceleration-level equations as they are."""
+
+    def bias_correction(self, system, q, qd, t, args):
+        return None
+
+    def wrap_solver(self, solver, system, stepsize_controller, adjoint):
+        return solver
+
+    def project_saved(self, system, q, qd, ts, args):
+        return q, qd
 
 
 class Baumgarte(AbstractStabilization):
@@ -48,6 +87,12 @@ class Baumgarte(AbstractStabilization):
         position = system.position_rows(q, t, args)
         return 2 * self.alpha * velocity + self.beta**2 * position
 
+    def wrap_solver(self, solver, system, stepsize_controller, adjoint):
+        return solver
+
+    def project_saved(self, system, q, qd, ts, args):
+        return q, qd
+
 
 class Projection(AbstractStabilization):
     """Project onto the constraint manifold after each step, in the metric of `M`.
@@ -60,9 +105,23 @@ class Projection(AbstractStabilization):
     Works with any diffrax solver, explicit or implicit. A first-same-as-last solver
     (Tsit5, Dopri5) re-evaluates the vector field at the projected state at the start
     of each step (one more evaluation per step), so no stale derivative is reused.
+    The saved states, interpolated between steps, are projected as well.
     """
 
     iterations: int = 3
+
+    def bias_correction(self, system, q, qd, t, args):
+        return None
+
+    def wrap_solver(self, solver, system, stepsize_controller, adjoint):
+        solver = prepare_to_wrap(solver, stepsize_controller, adjoint)
+        return ProjectedSolver(solver, system, self.iterations)
+
+    def project_saved(self, system, q, qd, ts, args):
+        project = lambda q_, qd_, t_: project_state(
+            system, q_, qd_, t_, args, self.iterations
+        )
+        return jax.vmap(project)(q, qd, ts)
 
 
 def project_state(system, q, qd, t, args, iterations: int):
@@ -84,29 +143,7 @@ def project_state(system, q, qd, t, args, iterations: int):
     return q, qd
 
 
-def resolve_implicit_tolerances(solver, stepsize_controller):
-    """Give an implicit solver's root finder the step-size controller's tolerances.
-
-    What `diffrax.diffeqsolve` does itself for a bare implicit solver, done before
-    wrapping it in `ProjectedSolver` (diffrax cannot reach into the wrapper).
-    """
-    if not isinstance(solver, diffrax.AbstractImplicitSolver) or not isinstance(
-        stepsize_controller, diffrax.AbstractAdaptiveStepSizeController
-    ):
-        return solver
-    names = [
-        name
-        for name in ("rtol", "atol", "norm")
-        if getattr(solver.root_finder, name) is use_stepsize_tol
-    ]
-    return eqx.tree_at(
-        lambda s: tuple(getattr(s.root_finder, name) for name in names),
-        solver,
-        tuple(getattr(stepsize_controller, name) for name in names),
-    )
-
-
-class ProjectedSolver(diffrax.AbstractWrappedSolver):
+class ProjectedSolver(AbstractForwardingSolver):
     """A diffrax solver followed by a projection onto the constraint manifold.
 
     Built by `simulate` for `Projection()`; wraps any diffrax solver (explicit or
@@ -116,38 +153,6 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
     solver: diffrax.AbstractSolver
     system: Any
     iterations: int
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def scan_kind(self):
-        return getattr(self.solver, "scan_kind", None)
-
-    @property
-    def root_finder(self):
-        # diffrax forwards `isinstance(..., AbstractImplicitSolver)` to the wrapped
-        # solver and then reads `root_finder`; `simulate` has already filled in its
-        # tolerances (`resolve_implicit_tolerances`).
-        return self.solver.root_finder
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
 
     def init(self, terms, t0, t1, y0, args):
         return self.solver.init(terms, t0, t1, y0, args)
@@ -163,6 +168,3 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
         q, qd = y1
         y1 = project_state(self.system, q, qd, t1, args, self.iterations)
         return y1, y_error, dense_info, solver_state, result
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)

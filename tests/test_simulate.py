@@ -368,3 +368,16 @@ def test_progress_meter_reports_and_changes_nothing(capfd):
     assert tree_allclose(plain.q, metered.q, rtol=0.0, atol=0.0)
     with pytest.raises(ValueError, match="progress meter"):
         cjax.simulate(system, (0.0, 1.0), q0, qd0, args, progress_meter="tqdm")
+
+
+def test_variational_integrator_refuses_a_progress_meter():
+    """The variational integrator runs its own loop, not diffrax's: a progress meter
+    is refused at trace time (not silently ignored), saying what to use instead."""
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+    vi = dict(solver=cjax.VariationalIntegrator(), dt0=0.01)
+    meter = diffrax.TextProgressMeter()
+    with pytest.raises(ValueError, match="progress_meter.*variational integrator"):
+        cjax.simulate(
+            pendulum.system(), (0.0, 1.0), q0, qd0, args, progress_meter=meter, **vi
+        )
