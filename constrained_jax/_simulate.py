@@ -112,17 +112,24 @@ def consistent_initial_state(
     return project_state(system, q0, qd0, jnp.asarray(t0, q0.dtype), args, iterations)
 
 
-def _vector_field(system, stabilization):
+def _field_and_multipliers(system, stabilization):
+    """`(t, (q, qdot), args) -> ((qdot, qddot), lambda)`: one KKT solve."""
+
     def field(t, y, args):
         q, qd = y
         correction = stabilization.bias_correction(system, q, qd, t, args)
-        qdd, _, singular = system.solve_accelerations(q, qd, t, args, correction)
+        qdd, lam, singular = system.solve_accelerations(q, qd, t, args, correction)
         # A singular KKT matrix makes the step fail (NaN rejected by the controller);
         # the status is recovered afterwards at the saved states.
         qdd = jnp.where(singular, jnp.nan, qdd)
-        return qd, qdd
+        return (qd, qdd), lam
 
     return field
+
+
+def _vector_field(system, stabilization):
+    field = _field_and_multipliers(system, stabilization)
+    return lambda t, y, args: field(t, y, args)[0]
 
 
 def simulate(
@@ -384,12 +391,17 @@ def _find_unilateral(system):
 # the manifold (or is about to overflow).
 _DIVERGED = 0.25
 # Where the watched multiplier of a `Unilateral` is sampled inside each step of the
-# attached phase (fractions of the step), besides its end.
+# attached phase (fractions of the step), besides its end, when the solver's stages
+# cannot be read (see `_WatchedSolver`).
 _WATCH_SAMPLES = (1 / 3, 2 / 3)
 # A step of the attached phase is refined while the multiplier at the samples departs
 # from the chord between its end values by more than this fraction of the larger end
 # value (it is then not resolved well enough to trust its sign between samples).
 _WATCH_ROUGHNESS = 0.25
+# The widest gap, as a fraction of the step, between the points at which the watched
+# multiplier is known inside a step of a Runge-Kutta solver (its stage times and the
+# extra samples on the dense output).
+_WATCH_GAP = 0.3
 
 
 def _diverged_condition(system, q_ref, t_ref, args):
@@ -428,8 +440,7 @@ class _WatchedSolver(AbstractForwardingSolver):
     diffrax evaluates an event condition only at the ends of the steps, and the state
     of an attached motion can be so smooth (even exactly linear: a body resting on a
     floor) that the controller takes steps far longer than the time the multiplier
-    stays of one sign. So each step also evaluates the multiplier at
-    `_WATCH_SAMPLES` of the step (on the solver's dense output), and
+    stays of one sign. So each step also looks at the multiplier inside the step, and
 
     - a step whose ends keep the sign but a sample does not is rejected (adaptive
         controllers then shrink it until an end lies past the sign change, where the
@@ -440,26 +451,79 @@ class _WatchedSolver(AbstractForwardingSolver):
         than `_WATCH_ROUGHNESS` of the larger end value is rejected (adaptive only), so
         that the steps resolve the multiplier where it comes near zero.
 
+    The samples. A Runge-Kutta solver (not wrapped by `Projection`) integrates the
+    state together with a dummy component whose derivative is the watched multiplier
+    (`stages`: the vector field and the multipliers from one KKT solve), so its
+    stages hand over the multiplier at every stage time for free, and at the end of
+    the step too for a first-same-as-last tableau. Where the stage times leave a gap
+    wider than `_WATCH_GAP` of the step (Tsit5: between 0.327 and 0.9), the
+    multiplier is also evaluated on the dense output there (`_gap_samples`). Other
+    solvers sample the dense output at `_WATCH_SAMPLES`. The dummy component takes no
+    part in the error estimate, so the steps, and the state, are the same as without
+    it.
+
     The multiplier at the start of the step is carried in the solver state.
     """
 
     solver: diffrax.AbstractSolver
     watch: Callable
     adaptive: bool = eqx.field(static=True)
+    stages: Callable | None = None
+
+    def _tableau(self):
+        """The Butcher tableau whose stages carry the multiplier, or `None`."""
+        if self.stages is None or not isinstance(
+            self.solver, diffrax.AbstractRungeKutta
+        ):
+            return None
+        tableau = getattr(self.solver, "tableau", None)
+        return tableau if isinstance(tableau, diffrax.ButcherTableau) else None
 
     def init(self, terms, t0, t1, y0, args):
-        return self.solver.init(terms, t0, t1, y0, args), self.watch(t0, y0, args)
+        w0 = self.watch(t0, y0, args)
+        if self._tableau() is None:
+            return self.solver.init(terms, t0, t1, y0, args), w0
+        stages = diffrax.ODETerm(self.stages)
+        return self.solver.init(stages, t0, t1, (y0, w0), args), w0
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         inner_state, w0 = solver_state
-        y1, y_error, dense_info, inner_state, result = self.solver.step(
-            terms, t0, t1, y0, args, inner_state, made_jump
-        )
-        interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
-        theta = jnp.asarray(_WATCH_SAMPLES, jnp.result_type(t0))
-        ts = t0 + theta * (t1 - t0)
-        ws = jax.vmap(lambda t: self.watch(t, interpolation.evaluate(t), args))(ts)
-        w1 = self.watch(t1, y1, args)
+        tableau = self._tableau()
+        dtype = jnp.result_type(t0)
+        if tableau is None:
+            y1, y_error, dense_info, inner_state, result = self.solver.step(
+                terms, t0, t1, y0, args, inner_state, made_jump
+            )
+            theta = np.asarray(_WATCH_SAMPLES)
+            w1 = self.watch(t1, y1, args)
+            ws = jnp.zeros((0,), dtype)
+            theta_stages = np.zeros((0,))
+        else:
+            (y1, _), y_error, dense, inner_state, result = self.solver.step(
+                diffrax.ODETerm(self.stages),
+                t0,
+                t1,
+                (y0, w0),
+                args,
+                inner_state,
+                made_jump,
+            )
+            # The dummy component is dropped: from the error (so that it does not
+            # steer the step size) and from the dense output.
+            y_error = None if y_error is None else y_error[0]
+            dense_info = {key: value[0] for key, value in dense.items()}
+            # The multiplier at the stages (diffrax keeps the stage increments,
+            # derivative times step).
+            ws = dense["k"][1] / (t1 - t0)
+            theta_stages = np.concatenate([[0.0], np.asarray(tableau.c)])
+            w1 = ws[-1] if tableau.fsal else self.watch(t1, y1, args)
+            theta = _gap_samples(theta_stages)
+        if theta.size:
+            interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
+            ts = t0 + jnp.asarray(theta, dtype) * (t1 - t0)
+            sample = lambda t: self.watch(t, interpolation.evaluate(t), args)
+            ws = jnp.concatenate([ws, jax.vmap(sample)(ts)])
+        theta = jnp.asarray(np.concatenate([theta_stages, theta]), dtype)
         dipped = (w0 >= 0) & (w1 >= 0) & jnp.any(ws < 0)
         if self.adaptive:
             chord = w0 + theta * (w1 - w0)
@@ -492,6 +556,22 @@ class _Phase(eqx.Module):
     event_mask: Any
 
 
+def _gap_samples(theta_stages: np.ndarray) -> np.ndarray:
+    """Fractions of the step at which to sample the dense output, so that with the
+    stage times no gap is wider than `_WATCH_GAP`: the midpoint of the widest gap,
+    again and again (static, numpy)."""
+    points = sorted({float(t) for t in theta_stages if 0.0 <= t <= 1.0} | {0.0, 1.0})
+    extra = []
+    while True:
+        gaps = np.diff(points)
+        i = int(np.argmax(gaps))
+        if gaps[i] <= _WATCH_GAP:
+            return np.asarray(extra, dtype=float)
+        mid = 0.5 * (points[i] + points[i + 1])
+        extra.append(mid)
+        points = sorted(points + [mid])
+
+
 def _run_phase(
     system,
     t0,
@@ -515,13 +595,21 @@ def _run_phase(
     if `None`).
 
     `event` is a tuple of condition functions (the phase's own, if any, then the
-    divergence check); `watch`, if given, is the multiplier the attached phase
-    samples inside each step (`_WatchedSolver`), under an `adaptive` controller or
-    not."""
+    divergence check); `watch`, if given, is `(watch_fn, pick)`: the multiplier the
+    attached phase samples inside each step, as a function of the state and as a
+    function of all the multipliers (`_WatchedSolver`), under an `adaptive`
+    controller or not."""
     solver = stabilization.wrap_solver(solver, system, stepsize_controller, adjoint)
     if watch is not None:
+        watch_fn, pick = watch
+        field = _field_and_multipliers(system, stabilization)
+
+        def stages(t, y_and_w, args):
+            derivative, lam = field(t, y_and_w[0], args)
+            return derivative, pick(lam)
+
         solver = prepare_to_wrap(solver, stepsize_controller, adjoint)
-        solver = _WatchedSolver(solver, watch, adaptive)
+        solver = _WatchedSolver(solver, watch_fn, adaptive, stages)
     terms = diffrax.ODETerm(_vector_field(system, stabilization))
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
@@ -704,10 +792,13 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         for c in system.constraints[:index]
     )
 
+    def watched(lam):
+        return group.sign * lam[row]
+
     def contact_force(t, y, args, **kwargs):
         del kwargs
         _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
-        return group.sign * lam[row]
+        return watched(lam)
 
     at_start = contact_force(t0, (q0, qd0), args) < 0
     # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
@@ -728,7 +819,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         (q0, qd0),
         jnp.clip(ts, t0, t_attach_end),
         release_event,
-        contact_force,
+        (contact_force, watched),
         adaptive=adaptive,
     )
     result1 = attached_phase.result
