@@ -765,7 +765,7 @@ def solve_functional(
         nodes) or [`constrained_jax.PiecewiseLinear`][] (second order, linear cost).
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][]. By default
         `Newton(rtol=1e-10, atol=1e-10, linear_solver=...)` with the linear solver that
-        suits the discretization (`discretization.linear_solver(n, m, k)`: dense LU
+        suits the discretization (`discretization.make_linear_solver(n, m, k)`: dense LU
         for `Chebyshev`, the linear-cost
         [`constrained_jax.BorderedBlockTridiagonal`][] for `PiecewiseLinear`).
     - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
@@ -948,7 +948,7 @@ def _solve_functional(
     x0 = guess[1:-1].reshape(-1)
 
     if solver is None:
-        solver = Newton(linear_solver=discretization.linear_solver(n, m, k))
+        solver = Newton(linear_solver=discretization.make_linear_solver(n, m, k))
     objective = eqx.filter_closure_convert(_objective, x0, full_args)
     has_constraints = m > 0 or k > 0
     constraints = (

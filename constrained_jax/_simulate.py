@@ -422,7 +422,7 @@ def _diverged_condition(system, q_ref, t_ref, args):
         q, qd = y
         bad = jnp.invert(all_finite((q, qd)))
         if num_rows:
-            position = system.position_rows(q, t, args) / row_norms
+            position = system.position_residual(q, t, args) / row_norms
             velocity = system.velocity_violation(q, qd, t, args) / row_norms
             bad = (
                 bad
@@ -756,10 +756,21 @@ class _VariationalDriver(_AbstractDriver):
 
     def run(self, system, t0, t1, q0, qd0, args, ts, *, dt0, max_steps, **options):
         del options  # Checked in `check`: nothing else to honour.
-        (q, qd), result, stats = integrate_variational(
-            self.integrator, system, t0, t1, dt0, q0, qd0, args, ts, max_steps=max_steps
+        variational = integrate_variational(
+            self.integrator,
+            system,
+            t0,
+            t1,
+            dt0,
+            q0,
+            qd0,
+            args,
+            ts_save=ts,
+            max_steps=max_steps,
+            throw=False,
         )
-        return _Run(q, qd, ts[-1], q[-1], qd[-1], result, stats)
+        q, qd = variational.q, variational.qd
+        return _Run(q, qd, ts[-1], q[-1], qd[-1], variational.result, variational.stats)
 
 
 @functools.singledispatch
@@ -923,7 +934,7 @@ def _simulate(
 ):
     system.check(q0, qd0, t0, args)
     start_ok = all_finite((q0, qd0, args, t0, t1))
-    position = system.position_violation(q0, t0, args)
+    position = system.holonomic_residual(q0, t0, args)
     velocity = system.velocity_violation(q0, qd0, t0, args)
     consistent = jnp.all(
         jnp.abs(position) <= consistency_tol * (1 + jnp.max(jnp.abs(q0)))
@@ -980,7 +991,7 @@ def _simulate(
         if saveat.energy:
             out["energy"] = system.energy(q_, qd_, t_, args)
         if saveat.violation:
-            out["position"] = system.position_violation(q_, t_, args)
+            out["position"] = system.holonomic_residual(q_, t_, args)
             out["velocity"] = system.velocity_violation(q_, qd_, t_, args)
         return out
 

@@ -84,7 +84,7 @@ class Baumgarte(AbstractStabilization):
 
     def bias_correction(self, system, q, qd, t, args) -> Float[Array, " k"]:
         velocity = system.velocity_violation(q, qd, t, args)
-        position = system.position_rows(q, t, args)
+        position = system.position_residual(q, t, args)
         return 2 * self.alpha * velocity + self.beta**2 * position
 
     def wrap_solver(self, solver, system, stepsize_controller, adjoint):
@@ -133,11 +133,11 @@ def project_state(system, q, qd, t, args, iterations: int):
         # [[M, A^T], [A, 0]] [dq; mu] = [0; r] is the system's saddle-point problem
         # with f = 0 and bias = -r (and lambda = -mu).
         zeros = jnp.zeros((n,), q.dtype)
-        return system.linear_solver.solve(mass, jac, zeros, -rhs_lower)[0]
+        return system.saddle_point_solver.solve(mass, jac, zeros, -rhs_lower)[0]
 
     for _ in range(iterations):
         jac = system.constraint_jacobian(q, t, args)
-        q = q + kkt_solve(jac, -system.position_rows(q, t, args))
+        q = q + kkt_solve(jac, -system.position_residual(q, t, args))
     jac = system.constraint_jacobian(q, t, args)
     qd = qd + kkt_solve(jac, -system.velocity_violation(q, qd, t, args))
     return q, qd
