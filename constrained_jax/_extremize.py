@@ -18,18 +18,17 @@ from jaxtyping import Array, Float
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
 from ._implicit import implicit_jvp, nan_tangent_where
 from ._kkt import (
-    AbstractKKTSolver,
     constraint_jacobian,
     gram_factors,
     kkt_residual,
     least_squares_multipliers,
-    Newton,
     reduced_hessian_extremes,
     tangent_projector,
 )
-from ._linalg import dense_factor, dense_solve
 from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
 from ._results import RESULTS
+from ._solver.dense_lu import dense_factor, dense_solve
+from ._solver.newton import AbstractKKTSolver, Newton
 
 
 class EXTREMUM(eqx.Enumeration):

@@ -34,8 +34,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._custom_types import Args, Scalar
 from ._discretization import AbstractDiscretization, Chebyshev
 from ._implicit import implicit_jvp, nan_tangent_where
-from ._kkt import AbstractKKTSolver, kkt_residual, Newton
-from ._linalg import dense_factor, dense_solve
+from ._kkt import kkt_residual
 from ._misc import (
     all_finite,
     as_traced_args,
@@ -43,6 +42,8 @@ from ._misc import (
     default_float_dtype,
 )
 from ._results import RESULTS
+from ._solver.dense_lu import dense_factor, dense_solve
+from ._solver.newton import AbstractKKTSolver, Newton
 
 
 LagrangianFn = Callable[[Any, Any, Scalar, Args], Scalar]

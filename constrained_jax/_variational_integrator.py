@@ -36,9 +36,9 @@ with `qdot_k` the velocity of momentum `p_k`). One step from `(q_k, p_k)`:
    and `p_{k+1} = p~ + A^T mu`.
 
 Each is a small `(n + k)`-square nonlinear system, solved by Newton's method with
-autodiff Jacobians and the unrolled LU of `_linalg.py` (LAPACK for `n + k > 12`). For
-`L` quadratic in `qdot`, step 2 is linear (Newton converges in one iteration, and a
-second confirms it).
+autodiff Jacobians and the unrolled LU of `_solver/dense_lu.py` (LAPACK for
+`n + k > 12`). For `L` quadratic in `qdot`, step 2 is linear (Newton converges in one
+iteration, and a second confirms it).
 
 **Properties.** For holonomic constraints and no forces the map
 `(q_k, p_k) -> (q_{k+1}, p_{k+1})` is symplectic on the constrained cotangent bundle
@@ -79,9 +79,9 @@ import jax.tree_util as jtu
 from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Holonomic
-from ._linalg import dense_factor, dense_solve
 from ._misc import all_finite, check_max_steps
 from ._results import RESULTS
+from ._solver.dense_lu import dense_factor, dense_solve
 from ._system import LagrangianSystem
 
 
