@@ -11,21 +11,28 @@ module holds
 
 - `kkt_residual`: `(grad F + J^T lambda, G)` by one reverse-mode pass;
 - `constraint_jacobian`, `tangent_projector`: the constraint geometry;
-- `AbstractKKTSolver` and its globalised `Newton` iteration, whose linear solves go
-  through Lineax (dense [`constrained_jax.DenseLU`][] or matrix-free
-  [`constrained_jax.MINRES`][]);
 - `reduced_hessian_extremes`: the Hessian of `F*` restricted to the tangent space of
-  the constraints, by Lanczos, which decides minimum / maximum / saddle.
+  the constraints, by Lanczos, which decides minimum / maximum / saddle;
+- `kkt_solve`: the one constrained solve (start check, an `AbstractKKTSolver` from
+  `_solver/newton.py` run to convergence, derivatives by the implicit function
+  theorem, the final residual) that every pillar calls.
 """
 
 from collections.abc import Callable
+from typing import Any
 
+import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, PyTree
+import lineax as lx
+from jaxtyping import Array, Bool, Float, PyTree
 
+from ._implicit import implicit_jvp
+from ._misc import check_max_steps
+from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve
+from ._solver.newton import AbstractKKTSolver, iterate
 
 
 # ---------------------------------------------------------------------------------
@@ -146,3 +153,98 @@ def reduced_hessian_extremes(
     tri = jnp.diag(alphas) + jnp.diag(off, 1) + jnp.diag(off, -1)
     eigs = jnp.linalg.eigvalsh(tri)
     return jnp.stack([eigs[0], eigs[-1]])
+
+
+# ---------------------------------------------------------------------------------
+# The constrained solve
+# ---------------------------------------------------------------------------------
+
+
+def check_kkt_solver(solver: AbstractKKTSolver, max_steps: int) -> None:
+    """Trace-time checks of the arguments of every constrained solve."""
+    if not isinstance(solver, AbstractKKTSolver):
+        raise ValueError(
+            f"`solver` must be a constrained_jax solver such as `cjax.Newton()`, got "
+            f"{type(solver).__name__}."
+        )
+    check_max_steps(max_steps)
+
+
+def _primal(inputs):
+    objective, constraints, solver, z0, args, n, max_steps, start_ok, strategy = inputs
+    residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
+    solve = lambda res, z_start, ok: iterate(solver, res, z_start, args, max_steps, ok)
+    if strategy is None:
+        z, result, stats = solve(residual, z0, start_ok)
+    else:
+        z, result, stats = strategy(solve, residual, z0, args, start_ok)
+    return z, (result, stats)
+
+
+def _rewrite(z, aux, inputs):
+    del aux
+    objective, constraints, _, _, args, n, _, _, _ = inputs
+    return kkt_residual(objective, constraints, z, args, n)
+
+
+def kkt_solve(
+    objective: Callable,
+    constraints: Callable | None,
+    x0: Float[Array, " n"],
+    lam0: Float[Array, " k"],
+    args: PyTree,
+    solver: AbstractKKTSolver,
+    max_steps: int,
+    start_ok: Bool[Array, ""],
+    strategy: Callable | None = None,
+) -> tuple[Float[Array, " n+k"], RESULTS, dict[str, Any], Float[Array, " n+k"]]:
+    """The constrained solve shared by [`constrained_jax.extremize`][] and
+    [`constrained_jax.solve_functional`][]: a root `z = (x, lambda)` of the KKT
+    residual of `F* = F + lambda . G`, differentiable by the implicit function theorem.
+
+    **Arguments:**
+
+    - `objective`, `constraints`: `F(x, args)`, `G(x, args)` on flat `x` (`G` may be
+        `None`); closure-converted here, so they may close over traced arrays.
+    - `x0`, `lam0`: the start; not differentiated. Where not `start_ok` it is returned
+        as it is.
+    - `args`: the parameters, differentiated through the implicit function theorem.
+    - `solver`, `max_steps`: run by `constrained_jax._solver.newton.iterate`.
+    - `start_ok`: false when the start is not usable (no step is taken, the status is
+        `RESULTS.invalid_input`).
+    - `strategy`: `None`, or a pytree callable `strategy(solve, residual, z0, args,
+        start_ok) -> (z, result, stats)` that drives the solve (e.g. continuation),
+        with `solve(residual, z_start, start_ok)` one run of the solver.
+
+    **Returns:** `(z, result, stats, residual)`: the root, with derivatives (NaN where
+    the solve failed, see `constrained_jax._implicit`); its status; `num_steps`,
+    `max_steps` and `kkt_residual` (root mean square); the KKT residual at `z`
+    (not differentiated).
+    """
+    n = x0.shape[0]
+    objective = eqx.filter_closure_convert(objective, x0, args)
+    if constraints is not None:
+        constraints = eqx.filter_closure_convert(constraints, x0, args)
+    z0 = lax.stop_gradient(jnp.concatenate([x0, lam0]))
+    inputs = (
+        objective,
+        constraints,
+        solver,
+        z0,
+        args,
+        n,
+        max_steps,
+        start_ok,
+        strategy,
+    )
+    tags = frozenset({lx.symmetric_tag})
+    z, (result, stats) = implicit_jvp(
+        _primal, _rewrite, inputs, tags, solver.linear_solver
+    )
+    residual = kkt_residual(objective, constraints, lax.stop_gradient(z), args, n)
+    stats = {
+        **stats,
+        "max_steps": max_steps,
+        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
+    }
+    return z, result, stats, residual
