@@ -307,6 +307,13 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
             x = jnp.stack(u)
             return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
         y = []  # M~^-1 A^T
+        # The rows of A along a null direction v of M~ (the A-row check). For
+        # positive semidefinite M it is redundant: v^T M~ v = v^T M v + rho |A v|^2
+        # = 0 forces A v = 0. It stays for indefinite M, where the column check of
+        # the factorisation need not fire: M = [[-1/2, -1/2], [-1/2, 1/2]],
+        # A = [1, 1] (a nonsingular KKT matrix) gives rho = 1/2, M~ = diag(0, 1),
+        # whose zero pivot has a zero column, but A v = 1: without this check the
+        # solve would return a wrong answer instead of reporting `singular`.
         size_a = functools.reduce(jnp.maximum, [jnp.abs(v) for row in a for v in row])
         for r in range(k):
             y_r, inconsistent = ldl_solve_unrolled(lower, d, a[r], null, size_a)
