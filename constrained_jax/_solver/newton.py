@@ -2,6 +2,7 @@
 loop that runs it (`iterate`), and [`constrained_jax.Newton`][]."""
 
 import abc
+import functools as ft
 from collections.abc import Callable
 from typing import Any
 
@@ -9,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import lineax as lx
 from jaxtyping import Array, Bool, Float, PyTree
 
@@ -64,9 +66,12 @@ def iterate(
     args: PyTree,
     max_steps: int,
     start_ok: Bool[Array, ""],
+    unrolled: int = 0,
 ) -> tuple[Float[Array, " m"], RESULTS, dict[str, Any]]:
     """Find `z` with `residual(z, args) = 0` by `solver`, starting at `z0`: one
     `lax.while_loop` over `solver.step` until `solver.terminate` or `max_steps`.
+    The first `unrolled` steps are straight-line code before the loop, which XLA
+    fuses with the code around it (for small systems solved inside another loop).
 
     `start_ok` is false when the inputs are not finite: no step is taken and the
     status is `RESULTS.invalid_input`. An iteration still going after `max_steps`
@@ -85,8 +90,10 @@ def iterate(
         z, state = solver.step(residual, z, args, state)
         return z, num_steps + 1, state
 
-    init = (z0, jnp.array(0), solver.init(residual, z0, args))
-    z, num_steps, state = lax.while_loop(cond, body, init)
+    carry = (z0, jnp.array(0), solver.init(residual, z0, args))
+    for _ in range(unrolled):
+        carry = jtu.tree_map(ft.partial(jnp.where, cond(carry)), body(carry), carry)
+    z, num_steps, state = lax.while_loop(cond, body, carry)
     done, result = solver.terminate(residual, z, args, state)
     result = RESULTS.where(
         (result == RESULTS.successful) & jnp.invert(done),
