@@ -68,9 +68,15 @@ def lu_factor_unrolled(
 
 
 def lu_solve_unrolled(
-    lu: Float[Array, "m m"], perm: Int[Array, " m"], b: Float[Array, " m"]
+    lu: Float[Array, "m m"],
+    perm: Int[Array, " m"],
+    b: Float[Array, " m"],
+    zero: Bool[Array, " m"] | None = None,
 ) -> Float[Array, " m"]:
-    """Solves `a x = b` given `lu_factor_unrolled(a)`."""
+    """Solves `a x = b` given `lu_factor_unrolled(a)`.
+
+    With `zero` (flags of vanishing pivots) those unknowns are set to 0 and their rows
+    of `U x = y` are dropped (the caller checks the residual)."""
     m = lu.shape[-1]
     y = b[perm]
     ys = []
@@ -84,7 +90,11 @@ def lu_solve_unrolled(
         s = ys[i]
         for j in range(i + 1, m):
             s = s - lu[i, j] * xs[j]
-        xs[i] = s / lu[i, i]
+        if zero is None:
+            xs[i] = s / lu[i, i]
+        else:
+            pivot = jnp.where(zero[i], 1.0, lu[i, i])
+            xs[i] = jnp.where(zero[i], 0.0, s / pivot)
     return jnp.stack(xs)
 
 

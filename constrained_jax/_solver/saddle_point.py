@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import jax.scipy as jsp
 from jaxtyping import Array, Bool, Float
 
-from .dense_lu import dense_factor
+from .dense_lu import dense_factor, lu_solve_unrolled
 
 
 class AbstractSaddlePointSolver(eqx.Module):
@@ -60,20 +60,7 @@ def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
     caller checks the residual)."""
     m = lu.shape[-1]
     if unrolled:
-        y = b[perm]
-        ys = []
-        for i in range(m):
-            s = y[i]
-            for j in range(i):
-                s = s - lu[i, j] * ys[j]
-            ys.append(s)
-        xs = [None] * m
-        for i in reversed(range(m)):
-            s = ys[i]
-            for j in range(i + 1, m):
-                s = s - lu[i, j] * xs[j]
-            xs[i] = jnp.where(zero[i], 0.0, s / jnp.where(zero[i], 1.0, lu[i, i]))
-        return jnp.stack(xs)
+        return lu_solve_unrolled(lu, perm, b, zero)
     y = jsp.linalg.solve_triangular(lu, b[perm], lower=True, unit_diagonal=True)
     y = jnp.where(zero, 0.0, y)
     upper = jnp.where(zero[:, None], jnp.eye(m, dtype=lu.dtype), jnp.triu(lu))
