@@ -22,7 +22,8 @@ _ResidualFn = Callable[[Float[Array, " m"], PyTree], Float[Array, " m"]]
 
 
 class AbstractKKTSolver(eqx.Module):
-    """A method for finding a root of a symmetric KKT residual.
+    """A method for finding a root of a KKT residual (for extremization and
+    functionals a symmetric one: the Jacobian is the KKT matrix).
 
     The protocol is that of optimistix's `AbstractIterativeSolver`: `init` makes the
     solver state, `step` takes one step, `terminate` says whether to stop and with
