@@ -7,10 +7,6 @@ Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-p
 import importlib.metadata
 
 from . import plot as plot, scenes as scenes
-from ._banded import (
-    BorderedBlockTridiagonal as BorderedBlockTridiagonal,
-    EquilibratedDenseLU as EquilibratedDenseLU,
-)
 from ._constraints import (
     AbstractConstraint as AbstractConstraint,
     Holonomic as Holonomic,
@@ -45,14 +41,6 @@ from ._integrability import (
     is_exact as is_exact,
     is_integrable as is_integrable,
 )
-from ._kkt import (
-    AbstractKKTSolver as AbstractKKTSolver,
-    AbstractSaddlePointSolver as AbstractSaddlePointSolver,
-    FullKKTLU as FullKKTLU,
-    Newton as Newton,
-    RangeSpaceLDL as RangeSpaceLDL,
-)
-from ._linalg import DenseLU as DenseLU, MINRES as MINRES
 from ._reduce import (
     Linearization as Linearization,
     linearize as linearize,
@@ -67,6 +55,17 @@ from ._simulate import (
     SaveAt as SaveAt,
     simulate as simulate,
     Trajectory as Trajectory,
+)
+from ._solver import (
+    AbstractKKTSolver as AbstractKKTSolver,
+    AbstractSaddlePointSolver as AbstractSaddlePointSolver,
+    BorderedBlockTridiagonal as BorderedBlockTridiagonal,
+    DenseLU as DenseLU,
+    EquilibratedDenseLU as EquilibratedDenseLU,
+    FullKKTLU as FullKKTLU,
+    MINRES as MINRES,
+    Newton as Newton,
+    RangeSpaceLDL as RangeSpaceLDL,
 )
 from ._stabilization import (
     AbstractStabilization as AbstractStabilization,

@@ -28,7 +28,8 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._banded import BorderedBlockTridiagonal, EquilibratedDenseLU
+from ._solver.block_tridiagonal import BorderedBlockTridiagonal
+from ._solver.equilibrated_lu import EquilibratedDenseLU
 
 
 Interval = tuple[Float[Array, ""], Float[Array, ""]]

@@ -12,24 +12,24 @@ import jax
 import jax.flatten_util as jfu
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import lineax as lx
 from jaxtyping import Array, Float
 
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
-from ._implicit import implicit_jvp, nan_tangent_where
+from ._implicit import nan_tangent_where
 from ._kkt import (
-    AbstractKKTSolver,
+    check_kkt_solver,
     constraint_jacobian,
     gram_factors,
     kkt_residual,
+    kkt_solve,
     least_squares_multipliers,
-    Newton,
     reduced_hessian_extremes,
     tangent_projector,
 )
-from ._linalg import dense_factor, dense_solve
-from ._misc import all_finite, as_traced_args, check_max_steps, inexact_asarray
+from ._misc import all_finite, as_traced_args, inexact_asarray
 from ._results import RESULTS
+from ._solver.dense_lu import dense_factor, dense_solve
+from ._solver.newton import AbstractKKTSolver, Newton
 
 
 class EXTREMUM(eqx.Enumeration):
@@ -209,19 +209,6 @@ def _constraint_distance(g, jac):
     return distance, inconsistent
 
 
-def _primal(inputs):
-    objective, constraints, solver, z0, args, n, max_steps, start_ok = inputs
-    residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
-    z, result, stats = solver.solve(residual, z0, args, max_steps, start_ok)
-    return z, (result, stats)
-
-
-def _rewrite(z, aux, inputs):
-    del aux
-    objective, constraints, _, _, args, n, _, _ = inputs
-    return kkt_residual(objective, constraints, z, args, n)
-
-
 def extremize(
     objective: ObjectiveFn,
     x0: X,
@@ -293,12 +280,7 @@ def extremize(
 def _extremize(
     objective, x0, args, constraints, solver, multipliers0, max_steps, throw
 ):
-    if not isinstance(solver, AbstractKKTSolver):
-        raise ValueError(
-            f"`solver` must be a constrained_jax solver such as `cjax.Newton()`, got "
-            f"{type(solver).__name__}."
-        )
-    check_max_steps(max_steps)
+    check_kkt_solver(solver, max_steps)
     if not callable(objective):
         raise ValueError("`objective` must be a callable F(x, args) -> scalar.")
     if constraints is not None and not callable(constraints):
@@ -322,10 +304,6 @@ def _extremize(
     )
     dtype = x_flat.dtype
 
-    objective_flat = eqx.filter_closure_convert(objective_flat, x_flat, args)
-    if constraints_flat is not None:
-        constraints_flat = eqx.filter_closure_convert(constraints_flat, x_flat, args)
-
     start_ok = all_finite((x_flat, args, multipliers0))
     x_safe = jnp.where(start_ok, x_flat, 0.0)
     if k == 0:
@@ -342,20 +320,15 @@ def _extremize(
     # F(x0) itself (Newton uses only its derivatives, whose finiteness the first
     # step checks): NaN there means x0 is outside the domain of F.
     start_defined = jnp.isfinite(f0)
-    z0 = jax.lax.stop_gradient(jnp.concatenate([x_flat, lam0]))
-
-    inputs = (
+    z, result, stats, residual = kkt_solve(
         objective_flat,
         constraints_flat,
-        solver,
-        z0,
+        x_flat,
+        lam0,
         args,
-        n,
+        solver,
         max_steps,
         start_ok & start_defined,
-    )
-    z, (result, stats) = implicit_jvp(
-        _primal, _rewrite, inputs, frozenset({lx.symmetric_tag}), solver.linear_solver
     )
     result = RESULTS.where(
         start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, result
@@ -364,7 +337,6 @@ def _extremize(
     # Diagnostics: nondifferentiable.
     zs = jax.lax.stop_gradient(z)
     xs, lams = zs[:n], zs[n:]
-    residual = kkt_residual(objective_flat, constraints_flat, zs, args, n)
     if k == 0:
         project = lambda v: v
     else:
@@ -430,12 +402,7 @@ def _extremize(
     x, lam = z[:n], z[n:]
     value = objective_flat(x, args)
 
-    stats = {
-        **stats,
-        "max_steps": max_steps,
-        "reduced_hessian_eigenvalues": extremes,
-        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
-    }
+    stats = {**stats, "reduced_hessian_eigenvalues": extremes}
     sol = Extremum(
         x=unravel(x),
         multipliers=lam,

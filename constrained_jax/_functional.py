@@ -27,22 +27,20 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import lineax as lx
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._custom_types import Args, Scalar
 from ._discretization import AbstractDiscretization, Chebyshev
-from ._implicit import implicit_jvp, nan_tangent_where
-from ._kkt import AbstractKKTSolver, kkt_residual, Newton
-from ._linalg import dense_factor, dense_solve
+from ._implicit import nan_tangent_where
+from ._kkt import check_kkt_solver, gram_factors, kkt_solve, least_squares_multipliers
 from ._misc import (
     all_finite,
     as_traced_args,
-    check_max_steps,
     default_float_dtype,
 )
 from ._results import RESULTS
+from ._solver.newton import AbstractKKTSolver, Newton
 
 
 LagrangianFn = Callable[[Any, Any, Scalar, Args], Scalar]
@@ -52,7 +50,7 @@ LagrangianFn = Callable[[Any, Any, Scalar, Args], Scalar]
 def _float_dtype(*values):
     dtype = jnp.result_type(*values)
     if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = jnp.result_type(float)
+        dtype = default_float_dtype()
     return dtype
 
 
@@ -582,96 +580,101 @@ def _start_multipliers(x_flat, full_args, num_holonomic_rows):
     if problem.functional.integral_constraints:
         grad0 = jax.grad(_objective)(x_flat, full_args)
         jac = jax.jacrev(_integral_constraints)(x_flat, full_args)
-        factors = dense_factor(jac @ jac.T, unroll_max=12)
-        lam_int = -dense_solve(factors, jac @ grad0, unroll_max=12)
+        lam_int = least_squares_multipliers(grad0, jac, gram_factors(jac))
         lam_int = jnp.where(jnp.all(jnp.isfinite(lam_int)), lam_int, 0.0)
     else:
         lam_int = jnp.zeros((0,), dtype)
     return jnp.concatenate([lam_hol, lam_int])
 
 
-def _primal_functional(inputs):
+class _Continuation(eqx.Module):
     """Newton from `z0`; if that fails from the default start, continuation in the
-    integral constraint values.
+    integral constraint values (a `strategy` of `kkt_solve`).
 
-    The continuation (only when `homotopy` is given: the default start, with integral
-    constraints) solves the problem with the targets `C_j(t) = N_j[line] + t (C_j -
-    N_j[line])`, between the values at the straight line (`t = 0`) and the requested
-    ones (`t = 1`): first at some `t` from the default start for those targets, then
-    with `t` growing by a factor `q` from each solution to the next (`q = 2`, square
-    rooted after a failure), until `t = 1`. For a rope that sags deeply this follows
-    the minimizing branch from a shallow sag, where Newton's method converges from
-    the default start, down to the requested length.
+    The continuation (only from the default start, with integral constraints) solves
+    the problem with the targets `C_j(t) = N_j[line] + t (C_j - N_j[line])`, between
+    the values at the straight line (`t = 0`) and the requested ones (`t = 1`): first
+    at some `t` from the default start for those targets, then with `t` growing by a
+    factor `q` from each solution to the next (`q = 2`, square rooted after a
+    failure), until `t = 1`. For a rope that sags deeply this follows the minimizing
+    branch from a shallow sag, where Newton's method converges from the default
+    start, down to the requested length.
     """
-    objective, constraints, solver, z0, args, n, max_steps, start_ok, homotopy = inputs
-    residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
-    if homotopy is None:
-        z, result, stats = solver.solve(residual, z0, args, max_steps, start_ok)
-        return z, (result, stats)
-    r_line, num_holonomic_rows, start_found, deep = homotopy
-    # A deep start (sag larger than twice the interval) goes to the continuation
-    # at once: Newton from it may converge to a spurious discrete extremal.
-    direct_ok = start_ok & jnp.invert(deep & start_found)
-    z, result, stats = solver.solve(residual, z0, args, max_steps, direct_ok)
-    dtype = z0.dtype
-    pad = jnp.zeros((n + num_holonomic_rows,), dtype)
 
-    def trial(t, z_start):
-        offset = -(1 - t) * r_line
-        shifted = lambda z_, a: residual(z_, a) + jnp.concatenate([pad, offset])
-        z_t, result_t, stats_t = solver.solve(
-            shifted, z_start, args, max_steps, start_ok
+    r_line: Array
+    num_holonomic_rows: int = eqx.field(static=True)
+    start_found: Array
+    deep: Array
+
+    def __call__(self, solve, residual, z0, args, start_ok):
+        r_line, num_holonomic_rows = self.r_line, self.num_holonomic_rows
+        start_found = self.start_found
+        # A deep start (sag larger than twice the interval) goes to the continuation
+        # at once: Newton from it may converge to a spurious discrete extremal.
+        direct_ok = start_ok & jnp.invert(self.deep & start_found)
+        z, result, stats = solve(residual, z0, direct_ok)
+        dtype = z0.dtype
+        pad = jnp.zeros((z0.shape[0] - r_line.shape[0],), dtype)
+
+        def trial(t, z_start):
+            offset = -(1 - t) * r_line
+            shifted = lambda z_, a: residual(z_, a) + jnp.concatenate([pad, offset])
+            z_t, result_t, stats_t = solve(shifted, z_start, start_ok)
+            return z_t, result_t == RESULTS.successful, stats_t["num_steps"]
+
+        def fresh_start(t):
+            offset = -(1 - t) * r_line
+            values, _ = _feasible_start(args, offset)
+            x = values[1:-1].reshape(-1)
+            lam = _start_multipliers(x, args, num_holonomic_rows)
+            return jnp.concatenate([x, lam])
+
+        def cond(carry):
+            _, _, _, q, stage, _, finished = carry
+            return jnp.invert(finished) & (stage < _CONTINUATION_STAGES) & (q > 1.01)
+
+        def body(carry):
+            t_done, z_done, t_try, q, stage, steps, _ = carry
+            have = t_done > 0
+            z_start = jax.lax.cond(have, lambda: z_done, lambda: fresh_start(t_try))
+            z_t, ok, num = trial(t_try, z_start)
+            finished = ok & (t_try >= 1)
+            # After a failure: from the last solution, a smaller factor; before the
+            # first solution, a smaller t.
+            q_new = jnp.where(ok | jnp.invert(have), q, jnp.sqrt(q))
+            t_done_new = jnp.where(ok, t_try, t_done)
+            z_done_new = jnp.where(ok, z_t, z_done)
+            t_next = jnp.where(
+                ok | have, jnp.minimum(1.0, t_done_new * q_new), t_try / 4
+            )
+            return (
+                t_done_new,
+                z_done_new,
+                t_next,
+                q_new,
+                stage + 1,
+                steps + num,
+                finished,
+            )
+
+        one = jnp.ones((), dtype)
+        skipped = jnp.invert(direct_ok) & start_ok
+        need = (
+            (skipped | (result != RESULTS.successful))
+            & (result != RESULTS.nonlinear_max_steps_reached)
+            & start_ok
+            & start_found
         )
-        return z_t, result_t == RESULTS.successful, stats_t["num_steps"]
-
-    def fresh_start(t):
-        offset = -(1 - t) * r_line
-        values, _ = _feasible_start(args, offset)
-        x = values[1:-1].reshape(-1)
-        return jnp.concatenate([x, _start_multipliers(x, args, num_holonomic_rows)])
-
-    def cond(carry):
-        _, _, _, q, stage, _, finished = carry
-        return jnp.invert(finished) & (stage < _CONTINUATION_STAGES) & (q > 1.01)
-
-    def body(carry):
-        t_done, z_done, t_try, q, stage, steps, _ = carry
-        have = t_done > 0
-        z_start = jax.lax.cond(have, lambda: z_done, lambda: fresh_start(t_try))
-        z_t, ok, num = trial(t_try, z_start)
-        finished = ok & (t_try >= 1)
-        # After a failure: from the last solution, a smaller factor; before the first
-        # solution, a smaller t.
-        q_new = jnp.where(ok | jnp.invert(have), q, jnp.sqrt(q))
-        t_done_new = jnp.where(ok, t_try, t_done)
-        z_done_new = jnp.where(ok, z_t, z_done)
-        t_next = jnp.where(ok | have, jnp.minimum(1.0, t_done_new * q_new), t_try / 4)
-        return t_done_new, z_done_new, t_next, q_new, stage + 1, steps + num, finished
-
-    one = jnp.ones((), dtype)
-    skipped = jnp.invert(direct_ok) & start_ok
-    need = (
-        (skipped | (result != RESULTS.successful))
-        & (result != RESULTS.nonlinear_max_steps_reached)
-        & start_ok
-        & start_found
-    )
-    t_first = jnp.where(skipped, 1 / 16, 1 / 4).astype(dtype)
-    init = (0 * one, z, t_first, 2 * one, jnp.array(0), stats["num_steps"], ~need)
-    _, z_c, _, _, _, steps, finished = jax.lax.while_loop(cond, body, init)
-    solved = need & finished
-    z = jnp.where(solved, z_c, z)
-    result = RESULTS.where(
-        skipped & jnp.invert(solved), RESULTS.line_search_failed, result
-    )
-    result = RESULTS.where(solved, RESULTS.successful, result)
-    return z, (result, {**stats, "num_steps": steps})
-
-
-def _rewrite_functional(z, aux, inputs):
-    del aux
-    objective, constraints, _, _, args, n, _, _, _ = inputs
-    return kkt_residual(objective, constraints, z, args, n)
+        t_first = jnp.where(skipped, 1 / 16, 1 / 4).astype(dtype)
+        init = (0 * one, z, t_first, 2 * one, jnp.array(0), stats["num_steps"], ~need)
+        _, z_c, _, _, _, steps, finished = jax.lax.while_loop(cond, body, init)
+        solved = need & finished
+        z = jnp.where(solved, z_c, z)
+        result = RESULTS.where(
+            skipped & jnp.invert(solved), RESULTS.line_search_failed, result
+        )
+        result = RESULTS.where(solved, RESULTS.successful, result)
+        return z, result, {**stats, "num_steps": steps}
 
 
 def _boundary_violation(functional, args):
@@ -823,14 +826,20 @@ def solve_functional(
         # compile the whole solve again. Values at the nodes are traced.
         nodes = discretization.nodes(functional.interval)
         y0 = jax.vmap(lambda x: jnp.asarray(y0(x)))(nodes)
-    tolerance = _error_tolerance(discretization, rtol, atol)
+    dtype = (
+        functional.boundary[0].dtype
+        if isinstance(functional, Functional)
+        else default_float_dtype()
+    )
+    tolerance = _error_tolerance(discretization, rtol, atol, dtype)
     return _solve_functional(
         functional, args, discretization, solver, y0, max_steps, throw, tolerance
     )
 
 
-def _error_tolerance(discretization, rtol, atol):
-    """`(rtol, atol)` as float64 NumPy/JAX scalars; defaults from the discretization."""
+def _error_tolerance(discretization, rtol, atol, dtype):
+    """`(rtol, atol)` as float64 NumPy/JAX scalars; defaults from the discretization,
+    floored by what the functional's `dtype` can certify."""
     if rtol is None:
         rtol = (
             discretization.default_rtol
@@ -839,7 +848,7 @@ def _error_tolerance(discretization, rtol, atol):
         )
         # In float32 the coefficient tail sits at round-off near 1e-4: a default
         # tolerance below what the precision can certify would refuse every solve.
-        rtol = max(rtol, 3000 * float(jnp.finfo(default_float_dtype()).eps))
+        rtol = max(rtol, 3000 * float(jnp.finfo(dtype).eps))
     if atol is None:
         atol = 0.0
     out = []
@@ -871,12 +880,7 @@ def _solve_functional(
             "`cjax.Chebyshev(32)` or `cjax.PiecewiseLinear(1001)`, got "
             f"{discretization!r}."
         )
-    if solver is not None and not isinstance(solver, AbstractKKTSolver):
-        raise ValueError(
-            "`solver` must be a constrained_jax solver such as `cjax.Newton()`, got "
-            f"{type(solver).__name__}."
-        )
-    check_max_steps(max_steps)
+    check_kkt_solver(Newton() if solver is None else solver, max_steps)
 
     problem = _Problem(functional, discretization)
     dtype = functional.boundary[0].dtype
@@ -949,13 +953,7 @@ def _solve_functional(
 
     if solver is None:
         solver = Newton(linear_solver=discretization.make_linear_solver(n, m, k))
-    objective = eqx.filter_closure_convert(_objective, x0, full_args)
-    has_constraints = m > 0 or k > 0
-    constraints = (
-        eqx.filter_closure_convert(_constraints, x0, full_args)
-        if has_constraints
-        else None
-    )
+    constraints = _constraints if m > 0 or k > 0 else None
 
     start_ok = all_finite((x0, args, functional))
     boundary_ok = jnp.array(True)
@@ -965,10 +963,10 @@ def _solve_functional(
     x_safe = jnp.where(start_ok, x0, 0.0)
     num_holonomic_rows = (num_nodes - 2) * m
     lam0 = _start_multipliers(x_safe, _stop_gradient(full_args), num_holonomic_rows)
-    z0 = jax.lax.stop_gradient(jnp.concatenate([x_safe, lam0]))
 
     degenerate = jnp.array(False)
-    if m == 0 and k > 0:
+    check_line = m == 0 and k > 0
+    if check_line and default_start:
         degenerate = _degenerate_at_line(_stop_gradient(full_args)) & start_ok
     if default_start:
         line_values = _line(problem)[1:-1].reshape(-1)
@@ -976,27 +974,40 @@ def _solve_functional(
         continue_ok = start_found & jnp.invert(degenerate)
         sag = jnp.max(jnp.abs(guess - _line(problem)))
         deep = sag > 2 * (functional.interval[1] - functional.interval[0])
-        homotopy = _stop_gradient((r_line, num_holonomic_rows, continue_ok, deep))
+        continuation = _stop_gradient(
+            _Continuation(r_line, num_holonomic_rows, continue_ok, deep)
+        )
     else:
-        homotopy = None
-    inputs = (
-        objective,
+        continuation = None
+    z, result, stats, _ = kkt_solve(
+        _objective,
         constraints,
-        solver,
-        z0,
+        x_safe,
+        lam0,
         full_args,
-        num_unknowns,
+        solver,
         max_steps,
         start_ok & boundary_ok,
-        homotopy,
+        continuation,
     )
-    z, (result, stats) = implicit_jvp(
-        _primal_functional,
-        _rewrite_functional,
-        inputs,
-        frozenset({lx.symmetric_tag}),
-        solver.linear_solver,
-    )
+    if check_line and not default_start:
+        # The degeneracy check costs about as much as the solve of a small problem, so
+        # from a given start it runs only where it can matter: a degenerate problem has
+        # the line as its only feasible function, so a successful solve that ends away
+        # from it (by 1 % of the size of the problem: the constraint would then be off
+        # by about 1e-4, far beyond Newton's tolerance) is not degenerate.
+        values_z = problem.full_values(jax.lax.stop_gradient(z)[:num_unknowns])
+        line = _line(problem)
+        size = jnp.maximum(
+            functional.interval[1] - functional.interval[0], jnp.max(jnp.abs(line))
+        )
+        away = jnp.max(jnp.abs(values_z.reshape(line.shape) - line)) > 0.01 * size
+        maybe = start_ok & jnp.invert(away & (result == RESULTS.successful))
+        degenerate = jax.lax.cond(
+            maybe,
+            lambda: _degenerate_at_line(_stop_gradient(full_args)),
+            lambda: jnp.array(False),
+        )
     # Statuses in the words of this function.
     result = RESULTS.where(
         result == RESULTS.singular_kkt, RESULTS.functional_singular_kkt, result
@@ -1019,10 +1030,8 @@ def _solve_functional(
     mu = z[num_unknowns : num_unknowns + (num_nodes - 2) * m]
     lam = z[num_unknowns + (num_nodes - 2) * m :]
     values = problem.full_values(x_flat)
-    value = objective(x_flat, full_args)
+    value = _objective(x_flat, full_args)
 
-    zs = jax.lax.stop_gradient(z)
-    residual = kkt_residual(objective, constraints, zs, full_args, num_unknowns)
     # The a-posteriori error estimate (a diagnostic: not differentiated).
     values_s = jax.lax.stop_gradient(values)
     estimate = discretization.error_estimate(values_s, functional.interval)
@@ -1036,8 +1045,6 @@ def _solve_functional(
     )
     stats = {
         **stats,
-        "max_steps": max_steps,
-        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
         "error_estimate": estimate,
         "error_tolerance": bound,
     }

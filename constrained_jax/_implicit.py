@@ -17,6 +17,11 @@ last finite parameters instead of following a meaningless gradient.
 
 Successful solves get exactly the derivative optimistix would give:
 `-(d rewrite / d root)^-1 d rewrite / d inputs`.
+
+This adapter is the library's only copy of optimistix's private `implicit_jvp`
+(`optimistix/_ad.py`, reached as `optimistix.internal`, which has no stability
+promise): every solve differentiates through it, `constrained_jax._kkt.kkt_solve`
+(extremize, solve_functional) and the Newton solves of the variational integrator.
 """
 
 from collections.abc import Callable

@@ -25,8 +25,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
-from ._kkt import AbstractSaddlePointSolver, RangeSpaceLDL
 from ._misc import inexact_asarray
+from ._solver.saddle_point import AbstractSaddlePointSolver, RangeSpaceLDL
 
 
 class LagrangianSystem(eqx.Module):

@@ -36,9 +36,9 @@ with `qdot_k` the velocity of momentum `p_k`). One step from `(q_k, p_k)`:
    and `p_{k+1} = p~ + A^T mu`.
 
 Each is a small `(n + k)`-square nonlinear system, solved by Newton's method with
-autodiff Jacobians and the unrolled LU of `_linalg.py` (LAPACK for `n + k > 12`). For
-`L` quadratic in `qdot`, step 2 is linear (Newton converges in one iteration, and a
-second confirms it).
+autodiff Jacobians and the unrolled LU of `_solver/dense_lu.py` (LAPACK for
+`n + k > 12`). For `L` quadratic in `qdot`, step 2 is linear (Newton converges in one
+iteration, and a second confirms it).
 
 **Properties.** For holonomic constraints and no forces the map
 `(q_k, p_k) -> (q_{k+1}, p_{k+1})` is symplectic on the constrained cotangent bundle
@@ -75,13 +75,15 @@ import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
-import jax.tree_util as jtu
+import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Holonomic
-from ._linalg import dense_factor, dense_solve
+from ._implicit import implicit_jvp
 from ._misc import all_finite, check_max_steps, default_float_dtype
 from ._results import RESULTS
+from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
+from ._solver.newton import AbstractKKTSolver, iterate
 from ._system import LagrangianSystem
 
 
@@ -139,80 +141,85 @@ class Midpoint(AbstractDiscreteLagrangian):
         return f, f
 
 
-# ------------------------------------------------------------------ Newton with IFT
+# ------------------------------------------------ Newton with implicit derivatives
 
 
-def _newton_loop(fn, z0, params, rtol, atol, max_iter):
-    """Newton's method for `fn(z, params) = 0` from `z0`.
+class _NewtonChord(AbstractKKTSolver):
+    """Newton's method for the (unsymmetric) residuals of a variational step.
 
     Each iteration is a Newton step followed by a chord step with the same LU factors
     (one more residual evaluation and triangular solve, no new Jacobian): from an
     error `e` this reaches `O(e^3)`, and a problem affine in `z` (step 2 for `L`
     quadratic in `qdot`) is solved in one iteration. The iteration stops when the
     chord step satisfies `|dz_i| <= atol + rtol |z_i|` for every `i` (the error is then
-    of the order of its square), after `max_iter` iterations, or on a singular
-    Jacobian / non-finite iterate. The first iteration is unrolled (straight-line code
-    that XLA fuses with the rest of the step), the others run in a while loop.
-    Returns `(z, converged, iterations)`.
+    of the order of its square), or on a singular Jacobian / non-finite iterate
+    (`RESULTS.variational_step_failed`). Run by the loop of every KKT solve, with the
+    first iteration unrolled (straight-line code that XLA fuses with the rest of the
+    step); derivatives by the implicit function theorem with `linear_solver`.
     """
 
-    def value_and_value(z):
-        value = fn(z, params)
-        return value, value
+    rtol: float
+    atol: float
+    linear_solver: lx.AbstractLinearSolver = DenseLU(unroll_max=_UNROLL_MAX)
 
-    def iterate(z):
+    def init(self, residual, z, args):
+        del residual, z, args
+        return jnp.array(False), jnp.array(False)
+
+    def step(self, residual, z, args, state):
+        del state
+
+        def value_and_value(z):
+            value = residual(z, args)
+            return value, value
+
         jac, value = jax.jacfwd(value_and_value, has_aux=True)(z)
         factors = dense_factor(jac, _UNROLL_MAX)
         z_newton = z - dense_solve(factors, value, _UNROLL_MAX)
-        dz = -dense_solve(factors, fn(z_newton, params), _UNROLL_MAX)
+        dz = -dense_solve(factors, residual(z_newton, args), _UNROLL_MAX)
         z_new = z_newton + dz
-        scale = atol + rtol * jnp.abs(z_new)
+        scale = self.atol + self.rtol * jnp.abs(z_new)
         done = jnp.all(jnp.abs(dz) <= scale)
         failed = factors[2] | jnp.invert(jnp.all(jnp.isfinite(z_new)))
-        return jnp.where(failed, z, z_new), done, failed
+        return jnp.where(failed, z, z_new), (done, failed)
 
-    def cond(carry):
-        i, _, done, failed = carry
-        return (i < max_iter) & jnp.invert(done) & jnp.invert(failed)
+    def terminate(self, residual, z, args, state):
+        del residual, z, args
+        done, failed = state
+        result = RESULTS.where(
+            failed, RESULTS.variational_step_failed, RESULTS.successful
+        )
+        return done | failed, result
 
-    def body(carry):
-        i, z, _, _ = carry
-        z, done, failed = iterate(z)
-        return i + 1, z, done, failed
-
-    z, done, failed = iterate(z0)
-    init = (jnp.array(1), z, done, failed)
-    iterations, z, done, failed = jax.lax.while_loop(cond, body, init)
-    return z, done & jnp.invert(failed), iterations
+    def postprocess(self, residual, z, args, state):
+        del residual, args, state
+        return z, {}
 
 
-@eqx.filter_custom_jvp
-def _root(params, z0, *, fn, rtol, atol, max_iter):
-    """The root `z` of `fn(z, params)`, differentiable in `params` by the implicit
-    function theorem: `dz = -(dF/dz)^{-1} (dF/dparams . dparams)`. The initial guess
-    `z0` does not affect the root and is not differentiated."""
-    z, ok, iterations = _newton_loop(fn, z0, params, rtol, atol, max_iter)
-    return z, ok, iterations
+def _root_primal(inputs):
+    fn, params, z0, solver, max_iter = inputs
+    true = jnp.array(True)
+    z, result, stats = iterate(solver, fn, z0, params, max_iter, true, unrolled=1)
+    return z, (result, stats)
 
 
-@_root.def_jvp
-def _root_jvp(primals, tangents, *, fn, rtol, atol, max_iter):
-    params, z0 = primals
-    t_params, _ = tangents
-    z, ok, iterations = _root(
-        params, z0, fn=fn, rtol=rtol, atol=atol, max_iter=max_iter
+def _root_rewrite(z, aux, inputs):
+    del aux
+    fn, params, _, _, _ = inputs
+    return fn(z, params)
+
+
+def _root(fn, params, z0, *, rtol, atol, max_iter):
+    """The root `z` of `fn(z, params)` by `_NewtonChord` from `z0`, differentiable in
+    `params` by the implicit function theorem (`constrained_jax._implicit`):
+    `dz = -(dF/dz)^{-1} (dF/dparams . dparams)`. The initial guess `z0` does not
+    affect the root. Returns `(z, converged, iterations)`."""
+    solver = _NewtonChord(rtol=rtol, atol=atol)
+    inputs = (fn, params, z0, solver, max_iter)
+    z, (result, stats) = implicit_jvp(
+        _root_primal, _root_rewrite, inputs, frozenset(), solver.linear_solver
     )
-    # Symbolic-zero tangents (None) of floating leaves become explicit zeros.
-    t_params = jtu.tree_map(
-        lambda t, p: jnp.zeros_like(p) if t is None and eqx.is_inexact_array(p) else t,
-        t_params,
-        params,
-        is_leaf=lambda x: x is None,
-    )
-    _, d_value = eqx.filter_jvp(lambda p: fn(z, p), (params,), (t_params,))
-    jac = jax.jacfwd(fn)(z, params)
-    dz = -dense_solve(dense_factor(jac, _UNROLL_MAX), d_value, _UNROLL_MAX)
-    return (z, ok, iterations), (dz, None, None)
+    return z, result == RESULTS.successful, stats["num_steps"]
 
 
 # ---------------------------------------------------------------- the two stages
@@ -234,17 +241,15 @@ def _discrete_constraints(system: LagrangianSystem, q0, q1, t0, h, args):
     return jnp.concatenate(parts)
 
 
-def _position_residual(discretization, n, z, params):
+def _position_residual(quadrature, n, z, params):
     """Step 1: `p0 + D1 L_d(q0, q1) + f^- + A(q0)^T nu` and the discrete constraints,
     for `z = (q1, nu)`."""
     system, q0, p0, t0, h, args = params
     q1, nu = z[:n], z[n:]
-    d1 = jax.grad(lambda a: discretization(system.lagrangian, a, q1, t0, h, args))(q0)
+    d1 = jax.grad(lambda a: quadrature(system.lagrangian, a, q1, t0, h, args))(q0)
     momentum = p0 + d1 + system.constraint_jacobian(q0, t0, args).T @ nu
     if system.forces is not None:
-        momentum = (
-            momentum + discretization.forces(system.forces, q0, q1, t0, h, args)[0]
-        )
+        momentum = momentum + quadrature.forces(system.forces, q0, q1, t0, h, args)[0]
     constraints = _discrete_constraints(system, q0, q1, t0, h, args)
     return jnp.concatenate([momentum, constraints])
 
@@ -351,9 +356,9 @@ class VariationalIntegrator(AbstractVariationalIntegrator):
         # Step 1: positions and the first half of the impulse of constraint.
         guess = jnp.concatenate([q0 + h * state.qd, state.nu])
         z, ok1, it1 = solve(
+            ft.partial(_position_residual, self.quadrature, n),
             (system, q0, p0, t0, h, args),
             guess,
-            fn=ft.partial(_position_residual, self.quadrature, n),
         )
         q1, nu = z[:n], z[n:]
         # Step 2: the momentum at q1, and the velocity it implies, on the velocity
@@ -367,9 +372,7 @@ class VariationalIntegrator(AbstractVariationalIntegrator):
             )
         guess = jnp.concatenate([2 * (q1 - q0) / h - state.qd, nu])
         z, ok2, it2 = solve(
-            (system, q1, p_tilde, t1, args),
-            guess,
-            fn=ft.partial(_velocity_residual, n),
+            ft.partial(_velocity_residual, n), (system, q1, p_tilde, t1, args), guess
         )
         qd1, mu = z[:n], z[n:]
         p1 = p_tilde + system.constraint_jacobian(q1, t1, args).T @ mu

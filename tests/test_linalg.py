@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import constrained_jax as cjax
-from constrained_jax._linalg import lu_factor_unrolled, lu_solve_unrolled, minres
+from constrained_jax._solver.dense_lu import lu_factor_unrolled, lu_solve_unrolled
+from constrained_jax._solver.minres import minres
 
 
 def _kkt_matrix(rng, n, k):

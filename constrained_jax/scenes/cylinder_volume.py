@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._extremize import extremize, Extremum
-from .._kkt import AbstractKKTSolver, Newton
+from .._solver.newton import AbstractKKTSolver, Newton
 
 
 def volume(x: Float[Array, "2"], args: dict) -> Float[Array, ""]:

@@ -1,0 +1,15 @@
+"""The linear solvers of the library, one per module (as in `lineax/_solver/`):
+Lineax solvers for the KKT matrices of extremization and of discretized functionals,
+saddle-point solvers for constrained mechanics, and the Newton iteration on the KKT
+residual."""
+
+from .block_tridiagonal import BorderedBlockTridiagonal as BorderedBlockTridiagonal
+from .dense_lu import DenseLU as DenseLU
+from .equilibrated_lu import EquilibratedDenseLU as EquilibratedDenseLU
+from .minres import MINRES as MINRES
+from .newton import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
+from .saddle_point import (
+    AbstractSaddlePointSolver as AbstractSaddlePointSolver,
+    FullKKTLU as FullKKTLU,
+    RangeSpaceLDL as RangeSpaceLDL,
+)

@@ -1,0 +1,271 @@
+"""The nonlinear solvers of the KKT residual: the `AbstractKKTSolver` protocol, the
+loop that runs it (`iterate`), and [`constrained_jax.Newton`][]."""
+
+import abc
+import functools as ft
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+from jaxtyping import Array, Bool, Float, PyTree
+
+from .._results import RESULTS
+from .dense_lu import DenseLU
+
+
+_ResidualFn = Callable[[Float[Array, " m"], PyTree], Float[Array, " m"]]
+
+
+class AbstractKKTSolver(eqx.Module):
+    """A method for finding a root of a KKT residual (for extremization and
+    functionals a symmetric one: the Jacobian is the KKT matrix).
+
+    The protocol is that of optimistix's `AbstractIterativeSolver`: `init` makes the
+    solver state, `step` takes one step, `terminate` says whether to stop and with
+    which status, `postprocess` finishes. The loop, `max_steps`, the check of the
+    start and the status after too many steps are written once, in
+    `constrained_jax._solver.newton.iterate`. `linear_solver` is also used by the
+    implicit function theorem in the backward pass, so that derivatives cost one more
+    linear solve of the same kind (never an unrolled iteration).
+    """
+
+    linear_solver: eqx.AbstractVar[lx.AbstractLinearSolver]
+
+    @abc.abstractmethod
+    def init(self, residual: _ResidualFn, z: Float[Array, " m"], args: PyTree) -> Any:
+        """The solver state before the first step from `z`."""
+
+    @abc.abstractmethod
+    def step(
+        self, residual: _ResidualFn, z: Float[Array, " m"], args: PyTree, state: Any
+    ) -> tuple[Float[Array, " m"], Any]:
+        """One step: the new iterate and state."""
+
+    @abc.abstractmethod
+    def terminate(
+        self, residual: _ResidualFn, z: Float[Array, " m"], args: PyTree, state: Any
+    ) -> tuple[Bool[Array, ""], RESULTS]:
+        """`(done, result)`: whether to stop, and the status so far (successful while
+        the iteration goes on or after it converged)."""
+
+    @abc.abstractmethod
+    def postprocess(
+        self, residual: _ResidualFn, z: Float[Array, " m"], args: PyTree, state: Any
+    ) -> tuple[Float[Array, " m"], dict[str, Any]]:
+        """The root returned, and the solver's own statistics."""
+
+
+def iterate(
+    solver: AbstractKKTSolver,
+    residual: _ResidualFn,
+    z0: Float[Array, " m"],
+    args: PyTree,
+    max_steps: int,
+    start_ok: Bool[Array, ""],
+    unrolled: int = 0,
+) -> tuple[Float[Array, " m"], RESULTS, dict[str, Any]]:
+    """Find `z` with `residual(z, args) = 0` by `solver`, starting at `z0`: one
+    `lax.while_loop` over `solver.step` until `solver.terminate` or `max_steps`.
+    The first `unrolled` steps are straight-line code before the loop, which XLA
+    fuses with the code around it (for small systems solved inside another loop).
+
+    `start_ok` is false when the inputs are not finite: no step is taken and the
+    status is `RESULTS.invalid_input`. An iteration still going after `max_steps`
+    steps is `RESULTS.nonlinear_max_steps_reached`.
+
+    **Returns:** `(z, result, stats)`, `stats` with `num_steps` and the solver's own.
+    """
+
+    def cond(carry):
+        z, num_steps, state = carry
+        done, _ = solver.terminate(residual, z, args, state)
+        return start_ok & jnp.invert(done) & (num_steps < max_steps)
+
+    def body(carry):
+        z, num_steps, state = carry
+        z, state = solver.step(residual, z, args, state)
+        return z, num_steps + 1, state
+
+    carry = (z0, jnp.array(0), solver.init(residual, z0, args))
+    for _ in range(unrolled):
+        carry = jtu.tree_map(ft.partial(jnp.where, cond(carry)), body(carry), carry)
+    z, num_steps, state = lax.while_loop(cond, body, carry)
+    done, result = solver.terminate(residual, z, args, state)
+    result = RESULTS.where(
+        (result == RESULTS.successful) & jnp.invert(done),
+        RESULTS.nonlinear_max_steps_reached,
+        result,
+    )
+    result = RESULTS.where(start_ok, result, RESULTS.invalid_input)
+    z, stats = solver.postprocess(residual, z, args, state)
+    return z, result, {"num_steps": num_steps, **stats}
+
+
+class _NewtonState(eqx.Module):
+    done: Bool[Array, ""]
+    result: RESULTS
+
+
+def _rms(x: Array) -> Array:
+    return jnp.sqrt(jnp.mean(jnp.square(x))) if x.size else jnp.zeros((), x.dtype)
+
+
+class Newton(AbstractKKTSolver):
+    """Newton's method on the full KKT system, globalised by an affine-covariant
+    line search.
+
+    Each step solves `K dz = -r` with the KKT matrix `K` (the Jacobian of the residual
+    `r`, built by autodiff) through Lineax. The step length `a` is halved until the
+    *natural monotonicity test* holds: the simplified Newton correction at the trial
+    point, `dz' = -K^{-1} r(z + a dz)` (same factorisation), must shrink,
+    `|dz'| <= (1 - a/4) |dz|`, in the scaled norm `rms(v / (atol + rtol |z|))`.
+    Unlike a test on `|r|`, this is invariant under rescaling of the equations and of
+    the unknowns, so badly scaled problems (lengths of 1e3 next to heights of 1e-1)
+    take full Newton steps. It converges from any start whose path avoids singular
+    `K`; otherwise it stops and says why (`RESULTS.singular_kkt`,
+    `RESULTS.line_search_failed`, `RESULTS.nonfinite_objective` where `F` or `G` or
+    their derivatives are NaN or inf, `RESULTS.linear_solve_failed` where an
+    iterative linear solver did not converge).
+
+    Converged when the full Newton step is within tolerance, `|dz| < 1` in that
+    scaled norm; the step is then taken (so the error is of the order of the square
+    of the tolerance). Tolerances below `10 eps` of the dtype (unreachable in
+    floating point) are raised to it.
+
+    The default `linear_solver` is [`constrained_jax.DenseLU`][], which forms `K`.
+    For large problems use a matrix-free one,
+    `Newton(linear_solver=constrained_jax.MINRES(rtol=1e-11, atol=0.0))`: each
+    Krylov iteration is then one Hessian-vector product, and no matrix is formed.
+
+    **Reference:** P. Deuflhard, *Newton Methods for Nonlinear Problems: Affine
+    Invariance and Adaptive Algorithms*, Springer (2004), section 3.3 (NLEQ-ERR).
+    """
+
+    rtol: float = 1e-10
+    atol: float = 1e-10
+    linear_solver: lx.AbstractLinearSolver = DenseLU()
+    max_backtracks: int = 40
+
+    def __check_init__(self):
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if isinstance(value, (int, float)) and not value >= 0:
+                raise ValueError(f"`Newton({name}=...)` must be non-negative.")
+        if (
+            isinstance(self.rtol, (int, float))
+            and isinstance(self.atol, (int, float))
+            and self.rtol == 0
+            and self.atol == 0
+        ):
+            raise ValueError("`Newton` needs a positive `rtol` or `atol`.")
+
+    def _tolerances(self, dtype):
+        floor = 10 * jnp.finfo(dtype).eps
+        rtol = jnp.maximum(jnp.asarray(self.rtol, dtype), floor)
+        atol = jnp.asarray(self.atol, dtype)
+        atol = jnp.where(atol > 0, jnp.maximum(atol, floor), atol)
+        return rtol, atol
+
+    def init(self, residual, z, args):
+        del residual, args
+        return _NewtonState(done=jnp.array(False), result=RESULTS.successful)
+
+    def step(self, residual, z, args, state):
+        dtype = z.dtype
+        rtol, atol = self._tolerances(dtype)
+        structure = jax.ShapeDtypeStruct(z.shape, dtype)
+        solver = self.linear_solver
+        r, lin = jax.linearize(lambda z_: residual(z_, args), z)
+        operator = lx.FunctionLinearOperator(lin, structure, lx.symmetric_tag)
+        linear_state = solver.init(operator, {})
+
+        def newton_direction(rhs):
+            sol = lx.linear_solve(
+                operator, rhs, solver, state=linear_state, throw=False
+            )
+            return sol.value, sol.result
+
+        dz, lin_result = newton_direction(-r)
+        lin_ok = (lin_result == lx.RESULTS.successful) & jnp.all(jnp.isfinite(dz))
+        dz = jnp.where(lin_ok, dz, 0.0)
+        scale = atol + rtol * jnp.abs(z)
+        norm = lambda v: _rms(v / scale)
+        dz_norm = norm(dz)
+        converged = jnp.all(r == 0) | (lin_ok & (dz_norm < 1))
+
+        def contraction(alpha):
+            simplified, _ = newton_direction(-residual(z + alpha * dz, args))
+            theta = norm(simplified) / dz_norm
+            return jnp.where(jnp.isfinite(theta), theta, jnp.inf)
+
+        def ls_cond(c):
+            alpha, theta, it = c
+            return jnp.invert(theta <= 1 - alpha / 4) & (it < self.max_backtracks)
+
+        def ls_body(c):
+            alpha, _, it = c
+            alpha = 0.5 * alpha
+            return alpha, contraction(alpha), it + 1
+
+        one = jnp.ones((), dtype)
+        alpha, theta, _ = lax.while_loop(
+            ls_cond, ls_body, (one, contraction(one), jnp.array(0))
+        )
+        ls_ok = theta <= 1 - alpha / 4
+        alpha = jnp.where(converged, one, alpha)
+        z_new = z + alpha * dz
+        finite = jnp.all(jnp.isfinite(z_new))
+        # Why the Newton step could not be computed: a singular KKT matrix; NaN
+        # or inf in the residual or the matrix (F or G undefined there: DenseLU
+        # and MINRES report it as `nonfinite_input`, and Lineax does so when the
+        # right-hand side is not finite); otherwise an iterative solver that did
+        # not converge.
+        failed_result = RESULTS.where(
+            lin_result == lx.RESULTS.singular,
+            RESULTS.singular_kkt,
+            RESULTS.where(
+                lin_result == lx.RESULTS.nonfinite_input,
+                RESULTS.nonfinite_objective,
+                RESULTS.linear_solve_failed,
+            ),
+        )
+        result = RESULTS.where(
+            converged,
+            RESULTS.successful,
+            RESULTS.where(
+                jnp.invert(lin_ok),
+                failed_result,
+                RESULTS.where(
+                    jnp.invert(ls_ok), RESULTS.line_search_failed, state.result
+                ),
+            ),
+        )
+        moved = converged | (lin_ok & ls_ok)
+        # (A step that is not taken keeps the status that says why.)
+        result = RESULTS.where(moved & jnp.invert(finite), RESULTS.nonfinite, result)
+        z_new = jnp.where(moved & finite, z_new, z)
+        done = converged | (result != RESULTS.successful)
+        return z_new, _NewtonState(done=done, result=result)
+
+    def terminate(self, residual, z, args, state):
+        del residual, z, args
+        return state.done, state.result
+
+    def postprocess(self, residual, z, args, state):
+        del residual, args, state
+        return z, {}
+
+
+Newton.__init__.__doc__ = """**Arguments:**
+
+- `rtol`, `atol`: relative and absolute tolerance on the unknowns `z = (x, lambda)`.
+- `linear_solver`: a Lineax solver for `K dz = -r` (and for the backward pass).
+    [`constrained_jax.DenseLU`][] (default) forms `K`;
+    [`constrained_jax.MINRES`][] is matrix-free.
+- `max_backtracks`: halvings of the step before the line search gives up.
+"""

@@ -1,0 +1,329 @@
+"""Solvers for the saddle-point systems of constrained mechanics,
+
+    [[M, -A^T], [A, 0]] [x; lambda] = [f; -b],
+
+by the full KKT matrix ([`constrained_jax.FullKKTLU`][]) or by the range-space method
+on scalars ([`constrained_jax.RangeSpaceLDL`][]); both handle free gauge directions.
+"""
+
+import abc
+import functools
+
+import equinox as eqx
+import jax.numpy as jnp
+import jax.scipy as jsp
+from jaxtyping import Array, Bool, Float
+
+from .dense_lu import dense_factor, lu_solve_unrolled
+
+
+class AbstractSaddlePointSolver(eqx.Module):
+    """A method for the saddle-point system of constrained mechanics,
+
+        M x - A^T lambda = f,    A x = -b,
+
+    with `M` (n x n) symmetric and `A` (k x n). The system is nonsingular exactly when
+    `A` has full row rank and `M` is positive definite on the null space of `A`; `M`
+    itself may be singular.
+
+    **Free gauge directions.** A direction `v` with `M v = 0` and `A v = 0` (no
+    inertia, and free of the constraints: a massless coordinate that nothing couples
+    to, like the spin of the rolling cylinder with `I = 0` once it has let go) makes
+    the system singular, but it need not make it unsolvable. If no force acts along it
+    (`f . v = 0` to round-off) the equations hold for every component of `x` along `v`:
+    such a direction is a free gauge, and the solvers return the solution whose
+    unknown at the vanishing pivot is zero (for a massless coordinate: its
+    acceleration is zero, so its velocity is held). If a force acts along it
+    (`f . v != 0`, e.g. a potential gradient on a massless coordinate) the equations
+    are inconsistent and the solve reports `singular`. Redundant constraints (`A`
+    rank-deficient) are always reported `singular`: their multipliers are not unique.
+    """
+
+    @abc.abstractmethod
+    def solve(
+        self,
+        mass: Float[Array, "n n"],
+        jac: Float[Array, "k n"],
+        rhs: Float[Array, " n"],
+        bias: Float[Array, " k"],
+    ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
+        """Returns `(x, lambda, singular)`; when `singular`, `x` and `lambda` are 0.
+
+        `singular` is false for a free gauge direction (no inertia, no force, see the
+        class docstring): `x` is then the solution with zero component at its pivot.
+        """
+
+
+def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
+    """Solve `P K x = L U x = b[perm]` given an LU factorisation whose pivots `zero`
+    vanish: those unknowns are set to 0 and their rows of `U x = y` are dropped (the
+    caller checks the residual)."""
+    m = lu.shape[-1]
+    if unrolled:
+        return lu_solve_unrolled(lu, perm, b, zero)
+    y = jsp.linalg.solve_triangular(lu, b[perm], lower=True, unit_diagonal=True)
+    y = jnp.where(zero, 0.0, y)
+    upper = jnp.where(zero[:, None], jnp.eye(m, dtype=lu.dtype), jnp.triu(lu))
+    return jsp.linalg.solve_triangular(upper, y, lower=False)
+
+
+class FullKKTLU(AbstractSaddlePointSolver):
+    """Forms the `(n + k)` square KKT matrix and factors it by LU with partial
+    pivoting (unrolled up to `unroll_max` unknowns, LAPACK above).
+
+    Needs nothing but a nonsingular KKT matrix, so it also handles Lagrangians whose
+    `M` is indefinite. Under `jax.vmap` the pivoting (row selection, permutation)
+    becomes batched `dot`s and gathers that XLA on CPU does not fuse: for small
+    systems it costs several times [`constrained_jax.RangeSpaceLDL`][].
+
+    A pivot below `10 m eps` of the largest entry counts as zero. Zero pivots in the
+    columns of `x` are free gauge directions (see
+    [`constrained_jax.AbstractSaddlePointSolver`][]): their unknowns are set to zero
+    and the solution is accepted only if it satisfies the whole system to round-off
+    (`|K z - r| <= 100 m eps (|K| |z|_1 + |r|)`), i.e. if no force acts along them.
+    Zero pivots in the columns of `lambda` (redundant constraints) are `singular`.
+    Partial pivoting is not rank-revealing: for a gauge direction that is not along a
+    coordinate it may leave the dependent row where a later column needs it, and then
+    reports `singular` (never a wrong answer); [`constrained_jax.RangeSpaceLDL`][]
+    solves those. A massless coordinate that nothing couples to (a zero row and
+    column) is always handled.
+    """
+
+    unroll_max: int = 12
+
+    def solve(self, mass, jac, rhs, bias):
+        n, k = mass.shape[0], jac.shape[0]
+        if k == 0:
+            matrix, vector = mass, rhs
+        else:
+            zeros = jnp.zeros((k, k), mass.dtype)
+            matrix = jnp.block([[mass, -jac.T], [jac, zeros]])
+            vector = jnp.concatenate([rhs, -bias])
+        m = n + k
+        lu, perm, _ = dense_factor(matrix, self.unroll_max)
+        eps = jnp.finfo(matrix.dtype).eps
+        scale = jnp.max(jnp.abs(matrix))
+        zero = jnp.abs(jnp.diagonal(lu)) <= 10 * m * eps * scale
+        sol = _lu_solve_gauge(lu, perm, zero, vector, m <= self.unroll_max)
+        # With vanishing pivots the dropped rows are consistency conditions: the
+        # solution stands only if the whole system holds to round-off.
+        residual = jnp.max(jnp.abs(matrix @ sol - vector))
+        size = scale * jnp.sum(jnp.abs(sol)) + jnp.max(jnp.abs(vector))
+        consistent = residual <= 100 * m * eps * size
+        singular = jnp.any(zero[n:]) | (jnp.any(zero) & jnp.invert(consistent))
+        singular = singular | jnp.invert(jnp.all(jnp.isfinite(sol)))
+        sol = jnp.where(singular, 0.0, sol)
+        return sol[:n], sol[n:], singular
+
+
+def ldl_factor_unrolled(a: list[list[Array]], gauge: bool = False):
+    """`a = L D L^T` without pivoting, on a symmetric matrix given as nested lists of
+    scalars, unrolled at trace time.
+
+    Working on scalars keeps every operation elementwise: under `jax.vmap` the whole
+    factorisation fuses into a few loops over the batch (matrix slicing and `@` would
+    become batched `dot`s and gathers, which XLA on CPU does not fuse). Without
+    pivoting this is backward stable for positive definite `a`; for an indefinite `a`
+    it works whenever no leading principal minor vanishes.
+
+    A pivot below `10 m eps max|a|` is a zero pivot (`null[j]`), replaced by 1 in `d`
+    so that nothing is NaN. What it means depends on `gauge`:
+
+    - `gauge=False`: any zero pivot is a `breakdown` (`a` is taken to be nonsingular).
+    - `gauge=True`: zero pivots with a zero column are allowed (a positive
+        semidefinite `a` with null directions). That column of `L` is set to 0, so the
+        factorisation is that of `a` with its null directions split off: forward
+        substitution gives, at a zero pivot `j`, the component `b . v_j` of the
+        right-hand side along the null vector `v_j = L^-T e_j` (`a v_j = 0`).
+        `breakdown` is a zero pivot whose column is not zero (beyond
+        `2 sqrt(threshold max|a|)`): impossible for positive semidefinite `a`, where
+        `t^2 <= d_i d_j`, so an indefinite matrix that needs pivoting.
+
+    Returns `(L, d, null, breakdown)`: `L[i][j]` for `j < i` (unit diagonal implied),
+    the pivots `d`, the zero-pivot flags `null` and the `breakdown` flag.
+    """
+    m = len(a)
+    # `a` is symmetric: its lower triangle holds every entry.
+    scale = functools.reduce(
+        jnp.maximum, [jnp.abs(a[i][j]) for i in range(m) for j in range(i + 1)]
+    )
+    threshold = 10 * m * jnp.finfo(jnp.result_type(scale)).eps * scale
+    # The column test `|t| > 2 sqrt(threshold scale)`, squared: no square root.
+    column_threshold_sq = 4 * threshold * scale
+    lower: list[list[Array]] = [[] for _ in range(m)]
+    d: list[Array] = []
+    null: list[Array] = []
+    breakdown = jnp.array(False)
+    for j in range(m):
+        s = a[j][j]
+        for p in range(j):
+            s = s - lower[j][p] * lower[j][p] * d[p]
+        small = jnp.abs(s) <= threshold
+        null.append(small)
+        safe = jnp.where(small, jnp.ones_like(s), s)
+        d.append(safe)
+        column_big = []
+        for i in range(j + 1, m):
+            t = a[i][j]
+            for p in range(j):
+                t = t - lower[i][p] * lower[j][p] * d[p]
+            if gauge:
+                column_big.append(t * t > column_threshold_sq)
+                lower[i].append(jnp.where(small, jnp.zeros_like(t), t / safe))
+            else:
+                lower[i].append(t / safe)
+        if not gauge:
+            breakdown = breakdown | small
+        elif column_big:
+            breakdown = breakdown | (
+                small & functools.reduce(jnp.logical_or, column_big)
+            )
+    return lower, d, null, breakdown
+
+
+def ldl_solve_unrolled(lower, d, b: list[Array], null=None, size=None):
+    """Solve `L D L^T x = b` given `ldl_factor_unrolled` (lists of scalars).
+
+    With the zero-pivot flags `null` of a `gauge=True` factorisation, `x`'s entries at
+    zero pivots are set to 0, and `inconsistent` says that `b` has a component along
+    a null direction beyond round-off (`|b . v_j| > 100 m eps size`, `size = max|b|`
+    unless given): no solution exists. Without `null`, `inconsistent` is false.
+
+    Returns `(x, inconsistent)`.
+    """
+    m = len(d)
+    y: list[Array] = []
+    for i in range(m):
+        s = b[i]
+        for p in range(i):
+            s = s - lower[i][p] * y[p]
+        y.append(s)
+    inconsistent = jnp.array(False)
+    if null is not None:
+        if size is None:
+            size = functools.reduce(jnp.maximum, [jnp.abs(v) for v in b])
+        tol = 100 * m * jnp.finfo(jnp.result_type(size)).eps * size
+        inconsistent = functools.reduce(
+            jnp.logical_or, [null[j] & (jnp.abs(y[j]) > tol) for j in range(m)]
+        )
+    x: list = [None] * m
+    for i in reversed(range(m)):
+        if null is None:
+            s = y[i] / d[i]
+        else:
+            s = jnp.where(null[i], jnp.zeros_like(y[i]), y[i] / d[i])
+        for p in range(i + 1, m):
+            s = s - lower[p][i] * x[p]
+        x[i] = s
+    return x, inconsistent
+
+
+class RangeSpaceLDL(AbstractSaddlePointSolver):
+    """The range-space (Schur complement) method on the augmented mass matrix.
+
+    Adding `rho A^T (A x + b) = 0` to the first block row gives the equivalent system
+
+        M~ x - A^T lambda = f - rho A^T b,   M~ = M + rho A^T A,
+
+    and `M~` is positive definite whenever `M` is positive semidefinite and the KKT
+    matrix is nonsingular, even when `M` is singular (a massless direction that the
+    constraints fix, as for the rolling cylinder with `I = 0`). Then
+
+        (A M~^-1 A^T) lambda = -b - A M~^-1 (f - rho A^T b),
+        x = M~^-1 (f - rho A^T b + A^T lambda),
+
+    with `M~` and the Schur complement factored by `L D L^T` without pivoting,
+    `rho = tr M / tr(A A^T)` (same units as `M`, so the scaling of the problem is kept).
+    Every operation is written on scalars and unrolled, so that under `jax.vmap` it
+    fuses into a few elementwise loops: on the scenes of `benchmarks/dynamics.py` it is
+    several times faster than [`constrained_jax.FullKKTLU`][] and close to hand-written
+    equations. Systems with `n + k > unroll_max` use `FullKKTLU`.
+
+    **Free gauge directions.** For positive semidefinite `M`, `M~` is singular exactly
+    when some `v != 0` has `M v = 0` and `A v = 0` (see
+    [`constrained_jax.AbstractSaddlePointSolver`][]). Its pivot vanishes (below
+    `10 m eps` of the largest entry, with a zero column): the unknown at that pivot is
+    set to zero, after checking that the right-hand side `f` and the rows of `A` have
+    no component along `v` beyond round-off; otherwise the system is `singular` (a
+    force along a direction without inertia). So the rolling cylinder with `I = 0`
+    keeps its spin rate once it flies free, and a massless coordinate with a
+    potential gradient on it is refused.
+
+    !!! note
+
+        A pivot below `10 m eps` of the largest entry with a nonzero column counts as
+        a breakdown and the system is reported singular. For positive semidefinite `M`
+        (every kinetic energy) that never happens. For an *indefinite* `M` (not a
+        kinetic energy) the elimination may break down on a nonsingular KKT matrix:
+        use [`constrained_jax.FullKKTLU`][]. A vanishing pivot of the Schur complement
+        (redundant constraints) is reported singular.
+
+    **Reference:** J. Nocedal and S. J. Wright, *Numerical Optimization*, 2nd ed.,
+    Springer (2006), sections 16.2-16.3 (range-space method, augmented Lagrangian).
+    """
+
+    unroll_max: int = 12
+
+    def solve(self, mass, jac, rhs, bias):
+        n, k = mass.shape[0], jac.shape[0]
+        if n + k > self.unroll_max:
+            return FullKKTLU(unroll_max=0).solve(mass, jac, rhs, bias)
+        m = [[mass[i, j] for j in range(n)] for i in range(n)]
+        a = [[jac[r, i] for i in range(n)] for r in range(k)]
+        f = [rhs[i] for i in range(n)]
+        b = [bias[r] for r in range(k)]
+        if k > 0:
+            trace_m = sum(jnp.abs(m[i][i]) for i in range(n))
+            trace_a = sum(a[r][i] * a[r][i] for r in range(k) for i in range(n))
+            one = jnp.ones_like(trace_m)
+            rho = jnp.where(trace_m > 0, trace_m, one) / jnp.where(
+                trace_a > 0, trace_a, one
+            )
+            m = [
+                [
+                    m[i][j] + rho * sum(a[r][i] * a[r][j] for r in range(k))
+                    for j in range(n)
+                ]
+                for i in range(n)
+            ]
+            f = [f[i] - rho * sum(a[r][i] * b[r] for r in range(k)) for i in range(n)]
+        lower, d, null, singular = ldl_factor_unrolled(m, gauge=True)
+        u, inconsistent = ldl_solve_unrolled(lower, d, f, null)
+        singular = singular | inconsistent
+        if k == 0:
+            x = jnp.stack(u)
+            return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
+        y = []  # M~^-1 A^T
+        # The rows of A along a null direction v of M~ (the A-row check). For
+        # positive semidefinite M it is redundant: v^T M~ v = v^T M v + rho |A v|^2
+        # = 0 forces A v = 0. It stays for indefinite M, where the column check of
+        # the factorisation need not fire: M = [[-1/2, -1/2], [-1/2, 1/2]],
+        # A = [1, 1] (a nonsingular KKT matrix) gives rho = 1/2, M~ = diag(0, 1),
+        # whose zero pivot has a zero column, but A v = 1: without this check the
+        # solve would return a wrong answer instead of reporting `singular`.
+        size_a = functools.reduce(jnp.maximum, [jnp.abs(v) for row in a for v in row])
+        for r in range(k):
+            y_r, inconsistent = ldl_solve_unrolled(lower, d, a[r], null, size_a)
+            y.append(y_r)
+            singular = singular | inconsistent
+        schur = [
+            [sum(a[r][i] * y[s][i] for i in range(n)) for s in range(k)]
+            for r in range(k)
+        ]
+        lower_s, d_s, _, singular_s = ldl_factor_unrolled(schur)
+        lam, _ = ldl_solve_unrolled(
+            lower_s,
+            d_s,
+            [-b[r] - sum(a[r][i] * u[i] for i in range(n)) for r in range(k)],
+        )
+        x = [u[i] + sum(y[r][i] * lam[r] for r in range(k)) for i in range(n)]
+        singular = singular | singular_s
+        x, lam = jnp.stack(x), jnp.stack(lam)
+        return jnp.where(singular, 0.0, x), jnp.where(singular, 0.0, lam), singular
+
+
+FullKKTLU.__init__.__doc__ = RangeSpaceLDL.__init__.__doc__ = """**Arguments:**
+
+- `unroll_max`: the largest `n + k` solved by unrolled elimination (trace and compile
+    time grow like `(n + k)**3`); larger systems use LAPACK's LU on the full matrix.
+"""
