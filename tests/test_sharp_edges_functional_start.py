@@ -312,6 +312,20 @@ def test_length_equal_to_chord_is_refused():
             assert sol.result == cjax.RESULTS.redundant_constraints
 
 
+def test_length_equal_to_chord_from_a_given_start_is_refused():
+    """The same from a start the user gives (the check then runs after the solve,
+    only where it can matter), for a start that sags and for the line itself."""
+    fun = cat.functional(0.0, 0.0, 1.0, 0.0)
+    args = {"rho_g": jnp.asarray(1.0), "length": jnp.asarray(1.0)}
+    starts = (lambda x: -0.1 * jnp.sin(jnp.pi * x), lambda x: 0.0 * x)
+    for disc in (cjax.Chebyshev(16), cjax.PiecewiseLinear(21)):
+        for y0 in starts:
+            sol = cjax.solve_functional(
+                fun, args, discretization=disc, y0=y0, throw=False
+            )
+            assert sol.result == cjax.RESULTS.redundant_constraints
+
+
 def test_nearly_taut_rope_is_right():
     """A rope 1e-6 longer than the chord: lambda ~ 1/sqrt(excess), ill-conditioned
     but right to the conditioning (excess known to eps / 1e-6 relative)."""
