@@ -423,7 +423,7 @@ def _diverged_condition(system, q_ref, t_ref, args):
         bad = jnp.invert(all_finite((q, qd)))
         if num_rows:
             position = system.position_residual(q, t, args) / row_norms
-            velocity = system.velocity_violation(q, qd, t, args) / row_norms
+            velocity = system.velocity_residual(q, qd, t, args) / row_norms
             bad = (
                 bad
                 | jnp.any(jnp.abs(position) > _DIVERGED * (1 + jnp.max(jnp.abs(q))))
@@ -935,7 +935,7 @@ def _simulate(
     system.check(q0, qd0, t0, args)
     start_ok = all_finite((q0, qd0, args, t0, t1))
     position = system.holonomic_residual(q0, t0, args)
-    velocity = system.velocity_violation(q0, qd0, t0, args)
+    velocity = system.velocity_residual(q0, qd0, t0, args)
     consistent = jnp.all(
         jnp.abs(position) <= consistency_tol * (1 + jnp.max(jnp.abs(q0)))
     ) & jnp.all(jnp.abs(velocity) <= consistency_tol * (1 + jnp.max(jnp.abs(qd0))))
@@ -992,7 +992,7 @@ def _simulate(
             out["energy"] = system.energy(q_, qd_, t_, args)
         if saveat.violation:
             out["position"] = system.holonomic_residual(q_, t_, args)
-            out["velocity"] = system.velocity_violation(q_, qd_, t_, args)
+            out["velocity"] = system.velocity_residual(q_, qd_, t_, args)
         return out
 
     n = q0.shape[0]

@@ -83,7 +83,7 @@ class Baumgarte(AbstractStabilization):
     beta: float = 1.0
 
     def bias_correction(self, system, q, qd, t, args) -> Float[Array, " k"]:
-        velocity = system.velocity_violation(q, qd, t, args)
+        velocity = system.velocity_residual(q, qd, t, args)
         position = system.position_residual(q, t, args)
         return 2 * self.alpha * velocity + self.beta**2 * position
 
@@ -139,7 +139,7 @@ def project_state(system, q, qd, t, args, iterations: int):
         jac = system.constraint_jacobian(q, t, args)
         q = q + kkt_solve(jac, -system.position_residual(q, t, args))
     jac = system.constraint_jacobian(q, t, args)
-    qd = qd + kkt_solve(jac, -system.velocity_violation(q, qd, t, args))
+    qd = qd + kkt_solve(jac, -system.velocity_residual(q, qd, t, args))
     return q, qd
 
 

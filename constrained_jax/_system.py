@@ -159,7 +159,7 @@ class LagrangianSystem(eqx.Module):
             [c.velocity_form(q, t, args)[0] for c in self.constraints]
         )
 
-    def velocity_violation(self, q, qd, t, args) -> Float[Array, " k"]:
+    def velocity_residual(self, q, qd, t, args) -> Float[Array, " k"]:
         """`A qdot + a` for every constraint (zero on admissible motions)."""
         if not self.constraints:
             return jnp.zeros((0,), q.dtype)

@@ -261,7 +261,7 @@ def _velocity_residual(n, z, params):
     v1, mu = z[:n], z[n:]
     jac = system.constraint_jacobian(q1, t1, args)
     momentum = system.momentum(q1, v1, t1, args) - p_tilde - jac.T @ mu
-    return jnp.concatenate([momentum, system.velocity_violation(q1, v1, t1, args)])
+    return jnp.concatenate([momentum, system.velocity_residual(q1, v1, t1, args)])
 
 
 # ----------------------------------------------------------------- the integrators

@@ -287,7 +287,7 @@ def test_rheonomic_constraint_hoop():
         )
         q, qd = sol.q, sol.qd
         position = jax.vmap(lambda a, t: system.holonomic_residual(a, t, args))(q, ts)
-        velocity = jax.vmap(lambda a, b, t: system.velocity_violation(a, b, t, args))(
+        velocity = jax.vmap(lambda a, b, t: system.velocity_residual(a, b, t, args))(
             q, qd, ts
         )
         return hoop.angle(q[-1], ts[-1], args), position, velocity, sol.result
@@ -323,7 +323,7 @@ def test_nonholonomic_rolling_disk():
             integrator, system, 0.0, t1, dt0, q0, qd0, args, ts_save=ts, throw=False
         )
         q, qd = sol.q, sol.qd
-        velocity = jax.vmap(lambda a, b: system.velocity_violation(a, b, 0.0, args))(
+        velocity = jax.vmap(lambda a, b: system.velocity_residual(a, b, 0.0, args))(
             q, qd
         )
         return q, _energy(system, q, qd, args), velocity, sol.result
