@@ -102,6 +102,37 @@ def test_closed_form_time_against_quadrature(theta0):
     np.testing.assert_allclose(cyl.detachment_time(theta0, args), reference, rtol=1e-11)
 
 
+@pytest.mark.parametrize(
+    "solver, controller, dt0, rtol",
+    [
+        # An implicit tableau: the dummy multiplier component rides through the
+        # stage root-finds (`_WatchedSolver` reads it from the stages).
+        (diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-8, atol=1e-8), None, 1e-8),
+        # Fixed steps with two stages: the dense output fills the gap (0.3 of a step).
+        (diffrax.Heun(), diffrax.ConstantStepSize(), 1e-3, 1e-6),
+    ],
+)
+def test_release_angle_with_other_tableaus(solver, controller, dt0, rtol):
+    args = cyl.default_args()
+    theta0 = jnp.asarray(0.3)
+    q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), args)
+    traj = cjax.simulate(
+        cyl.contact_system(),
+        (0.0, 2.0),
+        q0,
+        qd0,
+        args,
+        solver=solver,
+        stepsize_controller=controller,
+        dt0=dt0,
+        saveat=cjax.SaveAt(t1=True),
+    )
+    assert traj.release.released
+    np.testing.assert_allclose(
+        traj.release.q[1], cyl.detachment_angle(theta0, args), rtol=rtol
+    )
+
+
 def test_balanced_on_top_never_releases():
     """theta0 = 0 exactly: an equilibrium; it stays on top and is never released."""
     args = cyl.default_args()
