@@ -5,6 +5,7 @@ writes it (the function or Lagrangian, the constraints, the closed-form answer),
 
 from . import (
     catenary as catenary,
+    chain as chain,
     cylinder_volume as cylinder_volume,
     dido as dido,
     inverse as inverse,

@@ -1,0 +1,55 @@
+"""Matrices with a static sparsity pattern, as the structured KKT path passes them.
+
+The pattern (`rows`, `cols`, `shape`) is Python data, fixed at trace time; only the
+nonzero `values` are arrays (batched under `jax.vmap`). So a solver can plan its
+elimination once, at trace time, and the memory of a state is `O(nnz)`, not `O(n^2)`.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+
+class SparseMatrix(eqx.Module):
+    """`values[p]` at `(rows[p], cols[p])` of a `shape` matrix, zero elsewhere.
+
+    The pattern is static (tuples of Python ints, part of the tree structure); entries
+    listed in the pattern may still be zero at run time.
+    """
+
+    values: Float[Array, " nnz"]
+    rows: tuple[int, ...] = eqx.field(static=True)
+    cols: tuple[int, ...] = eqx.field(static=True)
+    shape: tuple[int, int] = eqx.field(static=True)
+
+    def todense(self) -> Float[Array, "m n"]:
+        out = jnp.zeros(self.shape, self.values.dtype)
+        if not self.rows:
+            return out
+        return out.at[np.asarray(self.rows), np.asarray(self.cols)].set(self.values)
+
+    @classmethod
+    def from_dense(cls, dense, pattern) -> "SparseMatrix":
+        """The entries of `dense` at the nonzeros of the boolean `pattern`."""
+        pattern = np.asarray(pattern, bool)
+        rows, cols = np.nonzero(pattern)
+        values = jnp.asarray(dense)[rows, cols]
+        return cls(
+            values,
+            tuple(int(r) for r in rows),
+            tuple(int(c) for c in cols),
+            tuple(int(s) for s in pattern.shape),
+        )
+
+    def pattern(self) -> np.ndarray:
+        out = np.zeros(self.shape, bool)
+        out[np.asarray(self.rows, int), np.asarray(self.cols, int)] = True
+        return out
+
+
+def as_dense(matrix) -> Float[Array, "m n"]:
+    """A dense array from a dense array or a `SparseMatrix`."""
+    if isinstance(matrix, SparseMatrix):
+        return matrix.todense()
+    return matrix
