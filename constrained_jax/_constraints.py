@@ -54,6 +54,15 @@ class AbstractConstraint(eqx.Module):
         fn = lambda q_, t_: self.velocity_residual(q_, qd, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
 
+    def jacobian_products(
+        self, q, qd, t, args, directions: Float[Array, "s n"]
+    ) -> tuple[Float[Array, "k s"], Float[Array, " k"]]:
+        """`(A @ directions.T, Adot qdot + adot)` in one pass: the products of the
+        Jacobian with a few directions (the seeds of a column colouring, a probe)
+        and the acceleration bias."""
+        jac, _ = self.velocity_form(q, t, args)
+        return jac @ directions.T, self.acceleration_bias(q, qd, t, args)
+
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for the others, one per row of `A`:
         the position-level residual that stabilization drives to zero."""
@@ -90,6 +99,24 @@ class Holonomic(AbstractConstraint):
         # One forward pass instead of the Jacobian: dG/dq qdot + dG/dt.
         fn = lambda q_, t_: self.position_residual(q_, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
+
+    def jacobian_products(self, q, qd, t, args, directions):
+        # One traced copy of G with two nested forward passes: the outer tangent
+        # (v, 0) gives dG/dq v = A v; the outer tangent (qdot, 1) applied to the
+        # velocity residual (the inner pass) gives the bias. All directions at once.
+        fn = lambda q_, t_: self.position_residual(q_, t_, args)
+
+        def with_velocity(q_, t_):
+            return jax.jvp(fn, (q_, t_), (qd, jnp.ones_like(t_)))
+
+        def along(dq, dt):
+            return jax.jvp(with_velocity, (q, t), (dq, dt))[1]
+
+        s = directions.shape[0]
+        dqs = jnp.concatenate([directions, qd[None]])
+        dts = jnp.concatenate([jnp.zeros((s,), t.dtype), jnp.ones((1,), t.dtype)])
+        d_position, d_velocity = jax.vmap(along)(dqs, dts)
+        return d_position[:s].T, d_velocity[s]
 
     def num_constraints(self, n, args, dtype=None):
         dtype = default_float_dtype() if dtype is None else dtype
@@ -225,6 +252,15 @@ class Unilateral(AbstractConstraint):
     def velocity_residual(self, q, qd, t, args):
         return jnp.concatenate(
             [c.velocity_residual(q, qd, t, args) for c in self.constraints]
+        )
+
+    def jacobian_products(self, q, qd, t, args, directions):
+        parts = [
+            c.jacobian_products(q, qd, t, args, directions) for c in self.constraints
+        ]
+        return (
+            jnp.concatenate([p[0] for p in parts]),
+            jnp.concatenate([p[1] for p in parts]),
         )
 
     def acceleration_bias(self, q, qd, t, args):

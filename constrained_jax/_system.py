@@ -22,11 +22,72 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
 from ._misc import inexact_asarray
-from ._solver.saddle_point import AbstractSaddlePointSolver, RangeSpaceLDL
+from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
+from ._solver.sparse import SparseMatrix
+from ._structure import colouring, detect, probe_vector, Structure
+
+
+PATTERN_MISMATCH_MESSAGE = (
+    "The sparsity pattern of the mass matrix M or of the constraint Jacobian A, "
+    "detected at random states when the system was traced, misses an entry that is "
+    "nonzero at this state (a coupling switched on by `jnp.where`, by `t` or by a "
+    "parameter value the random draws did not hit), so the structured equations of "
+    "motion would be wrong and the solve is refused. Pass "
+    "`saddle_point_solver=cjax.FullKKTLU()` (or `cjax.RangeSpaceLDL(dense=True)`) "
+    "to the `LagrangianSystem`: these use dense matrices and no detected pattern."
+)
+
+
+def _seeds(pattern: np.ndarray, dtype):
+    """The seed directions of a column colouring of `pattern`, shape
+    `(num_colours, n)`, and the colour of each column."""
+    n = pattern.shape[1]
+    colours = colouring(pattern) if n else np.zeros((0,), int)
+    num = int(colours.max()) + 1 if n else 0
+    seeds = np.zeros((num, n))
+    seeds[colours, np.arange(n)] = 1.0
+    return jnp.asarray(seeds, dtype), colours
+
+
+def _decompress(compressed, pattern: np.ndarray, colours: np.ndarray):
+    """The matrix from its compressed products `compressed[c] = sum over the columns
+    j of colour c of column j`: dense when `pattern` is, else a `SparseMatrix`."""
+    if pattern.all():
+        # Every column has its own colour (colours == arange): the Jacobian itself.
+        return compressed[np.argsort(colours)].T
+    rows, cols = np.nonzero(pattern)
+    values = compressed[colours[cols], rows]
+    return SparseMatrix(
+        values,
+        tuple(int(r) for r in rows),
+        tuple(int(c) for c in cols),
+        tuple(int(s) for s in pattern.shape),
+    )
+
+
+def _probe_mismatch(compressed_t, pattern, colours, product):
+    """Whether `product` (the matrix times the probe, by autodiff) differs beyond
+    round-off from the sparse reconstruction times the probe.
+
+    `compressed_t[i, c]` is entry `(i, j)` for the unique column `j` of colour `c` in
+    row `i`'s pattern, so the reconstruction is `sum_c compressed_t[i, c] w[i, c]`
+    with the static weights `w[i, c] = probe[j]`: elementwise, no dense matrix."""
+    rows, num_cols = pattern.shape
+    probe = probe_vector(num_cols)
+    weights = np.zeros((rows, compressed_t.shape[1]))
+    i, j = np.nonzero(pattern)
+    weights[i, colours[j]] = probe[j]
+    terms = compressed_t * jnp.asarray(weights, compressed_t.dtype)
+    reconstruction = jnp.sum(terms, axis=1)
+    eps = jnp.finfo(compressed_t.dtype).eps
+    scale = jnp.max(jnp.sum(jnp.abs(terms), axis=1)) + jnp.max(jnp.abs(product))
+    error = jnp.max(jnp.abs(reconstruction - product))
+    return error > 100 * (num_cols + 1) * eps * scale
 
 
 class LagrangianSystem(eqx.Module):
@@ -53,7 +114,7 @@ class LagrangianSystem(eqx.Module):
     lagrangian: Callable
     constraints: tuple[AbstractConstraint, ...] = ()
     forces: Callable | None = None
-    saddle_point_solver: AbstractSaddlePointSolver = RangeSpaceLDL()
+    saddle_point_solver: AbstractSaddlePointSolver = Automatic()
 
     def __init__(
         self,
@@ -61,7 +122,7 @@ class LagrangianSystem(eqx.Module):
         constraints: AbstractConstraint | Sequence[AbstractConstraint] = (),
         forces: Callable | None = None,
         *,
-        saddle_point_solver: AbstractSaddlePointSolver = RangeSpaceLDL(),
+        saddle_point_solver: AbstractSaddlePointSolver = Automatic(),
     ):
         if not callable(lagrangian):
             raise ValueError("`lagrangian` must be a callable L(q, qd, t, args).")
@@ -183,20 +244,77 @@ class LagrangianSystem(eqx.Module):
             [c.acceleration_bias(q, qd, t, args) for c in self.constraints]
         )
 
+    def num_constraints(self, n: int, args, dtype=None) -> int:
+        """`k`, the number of constraint rows (by shape evaluation)."""
+        return sum(c.num_constraints(n, args, dtype) for c in self.constraints)
+
+    def structure(self, q, t, args) -> Structure:
+        """The sparsity patterns of `M` and `A` (found once at trace time and cached;
+        see `constrained_jax._structure`)."""
+        n = q.shape[0]
+        return detect(self, q, t, args, n, self.num_constraints(n, args, q.dtype))
+
     def _equations(self, q, qd, t, args):
-        """`M`, the right-hand side `Q - c`, `A` and the acceleration bias."""
-        lag = self.lagrangian
-        grad_q = jax.grad(lag, argnums=0)(q, qd, t, args)
-        mass = self.mass_matrix(q, qd, t, args)
-        # (dp/dq) qdot + dp/dt, one forward pass at fixed qdot.
-        p_along = lambda q_, t_: self.momentum(q_, qd, t_, args)
-        _, dp = jax.jvp(p_along, (q, t), (qd, jnp.ones_like(t)))
-        rhs = grad_q - dp
+        """`(M, Q - c, A, bias, mismatch)` in one pass.
+
+        `M` and `A` are `SparseMatrix`es where their detected patterns are sparse
+        (dense arrays otherwise). Their nonzeros come from a column colouring: one
+        forward-mode product per colour (a diagonal `M` needs one, not `n`), all
+        pushed through one traced copy of the gradient of the Lagrangian (and of each
+        constraint) together with the directions that give the bias terms. With a
+        sparse pattern one more direction, a fixed probe `v`, checks the patterns at
+        the actual state: `mismatch` is true when `M v` or `A v` differs from the
+        product of the sparse matrices with `v` beyond round-off (an entry the
+        detection at random states missed); the solve must then be refused.
+        """
+        n = q.shape[0]
+        dtype = q.dtype
+        structure = self.structure(q, t, args)
+        k = structure.jac.shape[0]
+        checked = not (structure.mass_is_dense and structure.jac_is_dense)
+        probe = jnp.asarray(probe_vector(n), dtype)
+        mass_seeds, mass_colours = _seeds(structure.mass, dtype)
+        num_m = mass_seeds.shape[0]
+
+        # The Lagrangian: grad_q L and p = grad_qd L, and the forward products of
+        # (grad_q L, p) along (0, seed, 0) (columns of M), (qdot, 0, 1) (the terms
+        # dp/dq qdot + dp/dt of c) and (0, probe, 0).
+        def gradient(q_, qd_, t_):
+            return jax.grad(self.lagrangian, argnums=(0, 1))(q_, qd_, t_, args)
+
+        extra = [probe[None]] if checked else []
+        dqd = jnp.concatenate([mass_seeds, jnp.zeros((1, n), dtype), *extra])
+        dq = jnp.zeros_like(dqd).at[num_m].set(qd)
+        dt = jnp.zeros((dqd.shape[0],), dtype).at[num_m].set(1)
+        along = lambda dq_, dqd_, dt_: jax.jvp(gradient, (q, qd, t), (dq_, dqd_, dt_))
+        (grad_q, _), (_, dp) = jax.vmap(along, out_axes=((None, None), 0))(dq, dqd, dt)
+        rhs = grad_q - dp[num_m]
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
-        jac = self.constraint_jacobian(q, t, args)
-        bias = self.acceleration_bias(q, qd, t, args)
-        return mass, rhs, jac, bias
+        mass = _decompress(dp[:num_m], structure.mass, mass_colours)
+        mismatch = jnp.array(False)
+        if checked:
+            mismatch = _probe_mismatch(
+                dp[:num_m].T, structure.mass, mass_colours, dp[-1]
+            )
+
+        if k == 0:
+            return mass, rhs, jnp.zeros((0, n), dtype), jnp.zeros((0,), dtype), mismatch
+        jac_seeds, jac_colours = _seeds(structure.jac, dtype)
+        num_a = jac_seeds.shape[0]
+        directions = jnp.concatenate([jac_seeds, *extra])
+        products, bias = [], []
+        for c in self.constraints:
+            products_c, bias_c = c.jacobian_products(q, qd, t, args, directions)
+            products.append(products_c)
+            bias.append(bias_c)
+        products, bias = jnp.concatenate(products), jnp.concatenate(bias)
+        jac = _decompress(products[:, :num_a].T, structure.jac, jac_colours)
+        if checked:
+            mismatch = mismatch | _probe_mismatch(
+                products[:, :num_a], structure.jac, jac_colours, products[:, -1]
+            )
+        return mass, rhs, jac, bias, mismatch
 
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for Pfaffian ones, stacked like the
@@ -220,11 +338,20 @@ class LagrangianSystem(eqx.Module):
         costs more than its arithmetic). `bias_correction` (shape `(k,)`) is added to
         the acceleration bias, as Baumgarte stabilization does.
         """
+        qdd, lam, singular, mismatch = self._solve(q, qd, t, args, bias_correction)
+        return qdd, lam, singular | mismatch
+
+    def _solve(self, q, qd, t, args, bias_correction=None):
+        """`(qddot, lambda, singular, mismatch)`: `mismatch` is the run-time check of
+        the sparsity patterns (see `_equations`); both flags zero the solution."""
         t = jnp.asarray(t, q.dtype)
-        mass, rhs, jac, bias = self._equations(q, qd, t, args)
+        mass, rhs, jac, bias, mismatch = self._equations(q, qd, t, args)
         if bias_correction is not None:
             bias = bias + bias_correction
-        return self.saddle_point_solver.solve(mass, jac, rhs, bias)
+        qdd, lam, singular = self.saddle_point_solver.solve(mass, jac, rhs, bias)
+        qdd = jnp.where(mismatch, 0.0, qdd)
+        lam = jnp.where(mismatch, 0.0, lam)
+        return qdd, lam, singular, mismatch
 
     def accelerations(self, q, qd, t, args=None):
         """Solve the equations of motion for `(qddot, multipliers)`.
@@ -242,6 +369,11 @@ class LagrangianSystem(eqx.Module):
         0, so its velocity is held). See
         [`constrained_jax.AbstractSaddlePointSolver`][].
 
+        Also raises if the sparsity patterns of `M` and `A`, found at random states
+        when the system is first traced, miss an entry that is nonzero at this state
+        (a coupling switched on by `jnp.where`, by `t` or by an integer parameter):
+        pass `saddle_point_solver=cjax.FullKKTLU()` (dense, no pattern) then.
+
         Raises (at run time, also under `jit`) if the equations have no solution or
         no unique multipliers: a force acts along a direction without inertia that
         the constraints leave free (e.g. a massless coordinate with a potential
@@ -249,7 +381,8 @@ class LagrangianSystem(eqx.Module):
         """
         q, qd = inexact_asarray(q), inexact_asarray(qd)
         self.check(q, qd, t, args)
-        qdd, lam, singular = self.solve_accelerations(q, qd, t, args)
+        qdd, lam, singular, mismatch = self._solve(q, qd, t, args)
+        qdd, lam = eqx.error_if((qdd, lam), mismatch, PATTERN_MISMATCH_MESSAGE)
         qdd, lam = eqx.error_if(
             (qdd, lam),
             singular,
