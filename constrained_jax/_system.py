@@ -29,7 +29,8 @@ from ._constraints import AbstractConstraint
 from ._misc import inexact_asarray
 from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
 from ._solver.sparse import SparseMatrix
-from ._structure import colouring, detect, probe_vector, Structure
+from ._solver.sparse_schur import SparseSchur
+from ._structure import colouring, dense_structure, detect, probe_vector, Structure
 
 
 PATTERN_MISMATCH_MESSAGE = (
@@ -41,6 +42,11 @@ PATTERN_MISMATCH_MESSAGE = (
     "`saddle_point_solver=cjax.FullKKTLU()` (or `cjax.RangeSpaceLDL(dense=True)`) "
     "to the `LagrangianSystem`: these use dense matrices and no detected pattern."
 )
+
+
+def _takes_sparse(solver) -> bool:
+    # `SparseSchur` takes sparse matrices by its interface.
+    return solver.structured() or isinstance(solver, SparseSchur)
 
 
 def _seeds(pattern: np.ndarray, dtype):
@@ -249,72 +255,87 @@ class LagrangianSystem(eqx.Module):
         return sum(c.num_constraints(n, args, dtype) for c in self.constraints)
 
     def structure(self, q, t, args) -> Structure:
-        """The sparsity patterns of `M` and `A` (found once at trace time and cached;
-        see `constrained_jax._structure`)."""
+        """The sparsity patterns of `M` and `A` that the equations of motion use:
+        detected once at trace time (cached; see `constrained_jax._structure`) when
+        the saddle-point solver takes sparse matrices, dense otherwise."""
         n = q.shape[0]
-        return detect(self, q, t, args, n, self.num_constraints(n, args, q.dtype))
+        k = self.num_constraints(n, args, q.dtype)
+        if not _takes_sparse(self.saddle_point_solver):
+            return dense_structure(n, k)
+        return detect(self, q, t, args, n, k)
 
     def _equations(self, q, qd, t, args):
-        """`(M, Q - c, A, bias, mismatch)` in one pass.
+        """`(M, Q - c, A, bias, mismatch)`, each part in one pass.
 
         `M` and `A` are `SparseMatrix`es where their detected patterns are sparse
         (dense arrays otherwise). Their nonzeros come from a column colouring: one
         forward-mode product per colour (a diagonal `M` needs one, not `n`), all
         pushed through one traced copy of the gradient of the Lagrangian (and of each
         constraint) together with the directions that give the bias terms. With a
-        sparse pattern one more direction, a fixed probe `v`, checks the patterns at
+        sparse pattern one more direction, a fixed probe `v`, checks the pattern at
         the actual state: `mismatch` is true when `M v` or `A v` differs from the
-        product of the sparse matrices with `v` beyond round-off (an entry the
+        product of the sparse matrix with `v` beyond round-off (an entry the
         detection at random states missed); the solve must then be refused.
         """
-        n = q.shape[0]
-        dtype = q.dtype
         structure = self.structure(q, t, args)
-        k = structure.jac.shape[0]
-        checked = not (structure.mass_is_dense and structure.jac_is_dense)
-        probe = jnp.asarray(probe_vector(n), dtype)
-        mass_seeds, mass_colours = _seeds(structure.mass, dtype)
-        num_m = mass_seeds.shape[0]
+        mass, rhs, mismatch_m = self._lagrangian_pass(q, qd, t, args, structure)
+        jac, bias, mismatch_a = self._constraint_pass(q, qd, t, args, structure)
+        return mass, rhs, jac, bias, mismatch_m | mismatch_a
 
-        # The Lagrangian: grad_q L and p = grad_qd L, and the forward products of
-        # (grad_q L, p) along (0, seed, 0) (columns of M), (qdot, 0, 1) (the terms
-        # dp/dq qdot + dp/dt of c) and (0, probe, 0).
+    def _lagrangian_pass(self, q, qd, t, args, structure: Structure):
+        """`(M, Q - c, mismatch)`: `grad_q L` and `p = grad_qd L`, and the forward
+        products of `(grad_q L, p)` along `(0, seed, 0)` (the columns of `M`),
+        `(qdot, 0, 1)` (the terms `dp/dq qdot + dp/dt` of `c`) and, for a sparse
+        pattern, `(0, probe, 0)`, all in one traced pass."""
+        n, dtype = q.shape[0], q.dtype
+        checked = not structure.mass_is_dense
+        seeds, colours = _seeds(structure.mass, dtype)
+        num = seeds.shape[0]
+
         def gradient(q_, qd_, t_):
             return jax.grad(self.lagrangian, argnums=(0, 1))(q_, qd_, t_, args)
 
-        extra = [probe[None]] if checked else []
-        dqd = jnp.concatenate([mass_seeds, jnp.zeros((1, n), dtype), *extra])
-        dq = jnp.zeros_like(dqd).at[num_m].set(qd)
-        dt = jnp.zeros((dqd.shape[0],), dtype).at[num_m].set(1)
+        extra = [jnp.asarray(probe_vector(n), dtype)[None]] if checked else []
+        dqd = jnp.concatenate([seeds, jnp.zeros((1, n), dtype), *extra])
+        dq = jnp.zeros_like(dqd).at[num].set(qd)
+        dt = jnp.zeros((dqd.shape[0],), dtype).at[num].set(1)
         along = lambda dq_, dqd_, dt_: jax.jvp(gradient, (q, qd, t), (dq_, dqd_, dt_))
         (grad_q, _), (_, dp) = jax.vmap(along, out_axes=((None, None), 0))(dq, dqd, dt)
-        rhs = grad_q - dp[num_m]
+        rhs = grad_q - dp[num]
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
-        mass = _decompress(dp[:num_m], structure.mass, mass_colours)
+        mass = _decompress(dp[:num], structure.mass, colours)
         mismatch = jnp.array(False)
         if checked:
-            mismatch = _probe_mismatch(
-                dp[:num_m].T, structure.mass, mass_colours, dp[-1]
-            )
+            mismatch = _probe_mismatch(dp[:num].T, structure.mass, colours, dp[-1])
+        return mass, rhs, mismatch
 
+    def _constraint_pass(self, q, qd, t, args, structure: Structure):
+        """`(A, bias, mismatch)`: the products of `A` with the seeds of its column
+        colouring (and a probe, for a sparse pattern) and the acceleration bias, one
+        traced pass per constraint."""
+        n, dtype = q.shape[0], q.dtype
+        k = structure.jac.shape[0]
+        mismatch = jnp.array(False)
         if k == 0:
-            return mass, rhs, jnp.zeros((0, n), dtype), jnp.zeros((0,), dtype), mismatch
-        jac_seeds, jac_colours = _seeds(structure.jac, dtype)
-        num_a = jac_seeds.shape[0]
-        directions = jnp.concatenate([jac_seeds, *extra])
+            return jnp.zeros((0, n), dtype), jnp.zeros((0,), dtype), mismatch
+        checked = not structure.jac_is_dense
+        seeds, colours = _seeds(structure.jac, dtype)
+        num = seeds.shape[0]
+        extra = [jnp.asarray(probe_vector(n), dtype)[None]] if checked else []
+        directions = jnp.concatenate([seeds, *extra])
         products, bias = [], []
         for c in self.constraints:
             products_c, bias_c = c.jacobian_products(q, qd, t, args, directions)
             products.append(products_c)
             bias.append(bias_c)
         products, bias = jnp.concatenate(products), jnp.concatenate(bias)
-        jac = _decompress(products[:, :num_a].T, structure.jac, jac_colours)
+        jac = _decompress(products[:, :num].T, structure.jac, colours)
         if checked:
-            mismatch = mismatch | _probe_mismatch(
-                products[:, :num_a], structure.jac, jac_colours, products[:, -1]
+            mismatch = _probe_mismatch(
+                products[:, :num], structure.jac, colours, products[:, -1]
             )
-        return mass, rhs, jac, bias, mismatch
+        return jac, bias, mismatch
 
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for Pfaffian ones, stacked like the

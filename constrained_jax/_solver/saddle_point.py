@@ -55,6 +55,12 @@ class AbstractSaddlePointSolver(eqx.Module):
         class docstring): `x` is then the solution with zero component at its pivot.
         """
 
+    def structured(self) -> bool:
+        """Whether `solve` takes `M` and `A` as `SparseMatrix`es with patterns
+        detected at trace time (`LagrangianSystem` then builds them so, checking the
+        patterns at run time); if `False` it gets dense arrays and no pattern."""
+        return False
+
 
 def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
     """Solve `P K x = L U x = b[perm]` given an LU factorisation whose pivots `zero`
@@ -67,12 +73,6 @@ def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
     y = jnp.where(zero, 0.0, y)
     upper = jnp.where(zero[:, None], jnp.eye(m, dtype=lu.dtype), jnp.triu(lu))
     return jsp.linalg.solve_triangular(upper, y, lower=False)
-
-    def structured(self) -> bool:
-        """Whether `solve` takes `M` and `A` as `SparseMatrix`es with patterns
-        detected at trace time (`LagrangianSystem` then builds them so, checking the
-        patterns at run time); if `False` it gets dense arrays and no pattern."""
-        return False
 
 
 class FullKKTLU(AbstractSaddlePointSolver):
