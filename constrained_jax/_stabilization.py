@@ -132,6 +132,7 @@ def project_state(system, q, qd, t, args, iterations: int):
     states (see `LagrangianSystem.accelerations`) the projection is refused: the
     state returned is NaN, which the solver then rejects."""
     n = q.shape[0]
+    t = jnp.asarray(t, q.dtype)
     structure = system.structure(q, t, args)
     mass, _, mismatch = system._lagrangian_pass(q, qd, t, args, structure)
 
