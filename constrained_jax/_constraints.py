@@ -20,6 +20,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ._misc import default_float_dtype
@@ -61,7 +62,23 @@ class AbstractConstraint(eqx.Module):
         Jacobian with a few directions (the seeds of a column colouring, a probe)
         and the acceleration bias."""
         jac, _ = self.velocity_form(q, t, args)
-        return jac @ directions.T, self.acceleration_bias(q, qd, t, args)
+        directions = np.asarray(directions)
+        if directions.size <= 24:
+            # Static directions on scalars: fused under vmap (no batched `dot`).
+            columns = [
+                sum(jac[:, j] * float(v) for j, v in enumerate(row) if v != 0)
+                for row in directions
+            ]
+            products = jnp.stack(
+                [
+                    jnp.zeros(jac.shape[0], jac.dtype) if isinstance(c, int) else c
+                    for c in columns
+                ],
+                axis=1,
+            )
+        else:
+            products = jac @ jnp.asarray(directions.T, jac.dtype)
+        return products, self.acceleration_bias(q, qd, t, args)
 
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for the others, one per row of `A`:
@@ -113,8 +130,16 @@ class Holonomic(AbstractConstraint):
             return jax.jvp(with_velocity, (q, t), (dq, dt))[1]
 
         s = directions.shape[0]
-        dqs = jnp.concatenate([directions, qd[None]])
-        dts = jnp.concatenate([jnp.zeros((s,), t.dtype), jnp.ones((1,), t.dtype)])
+        dqs = jnp.concatenate([jnp.asarray(directions, q.dtype), qd[None]])
+        t = jnp.asarray(t, q.dtype)
+        dts = jnp.concatenate([jnp.zeros((s,), q.dtype), jnp.ones((1,), q.dtype)])
+        if (s + 1) * q.shape[0] <= 24:
+            # Few directions: one linearisation, its linear map applied to each
+            # (fused under vmap).
+            _, linear = jax.linearize(with_velocity, q, t)
+            outs = [linear(dqs[i], dts[i]) for i in range(s + 1)]
+            d_position = jnp.stack([o[0] for o in outs[:s]], axis=1)
+            return d_position, outs[s][1]
         d_position, d_velocity = jax.vmap(along)(dqs, dts)
         return d_position[:s].T, d_velocity[s]
 

@@ -17,6 +17,7 @@ set to zero (see `LagrangianSystem.accelerations`). The force of constraint is
 `Q^c = A^T lambda`.
 """
 
+import functools
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -44,6 +45,26 @@ PATTERN_MISMATCH_MESSAGE = (
 )
 
 
+# Up to this many entries (or directions), the compressed products are taken apart
+# on scalars and the directional derivatives pushed one by one: code that XLA fuses
+# into one loop under `jax.vmap` (batched gathers, `dot`s and small reductions are
+# not fused on CPU). Larger systems use vmapped, array-level code.
+_UNROLL = 24
+
+
+def _push(fn, primals, tangents: list):
+    """`(fn(*primals), [jvp of fn along each tangent])`: one linearisation, then the
+    linear map applied to each tangent (unrolled when few, else vmapped)."""
+    if len(tangents) * primals[0].shape[0] <= _UNROLL:
+        out, linear = jax.linearize(fn, *primals)
+        return out, [linear(*tangent) for tangent in tangents]
+    stacked = [jnp.stack(parts) for parts in zip(*tangents, strict=True)]
+    along = lambda *tangent: jax.jvp(fn, primals, tangent)
+    out, d_out = jax.vmap(along, out_axes=(None, 0))(*stacked)
+    take = lambda i: jax.tree_util.tree_map(lambda x: x[i], d_out)
+    return out, [take(i) for i in range(len(tangents))]
+
+
 def _takes_sparse(solver) -> bool:
     # `SparseSchur` takes sparse matrices by its interface.
     return solver.structured() or isinstance(solver, SparseSchur)
@@ -57,7 +78,7 @@ def _seeds(pattern: np.ndarray, dtype):
     num = int(colours.max()) + 1 if n else 0
     seeds = np.zeros((num, n))
     seeds[colours, np.arange(n)] = 1.0
-    return jnp.asarray(seeds, dtype), colours
+    return seeds, colours
 
 
 def _decompress(compressed, pattern: np.ndarray, colours: np.ndarray):
@@ -67,7 +88,13 @@ def _decompress(compressed, pattern: np.ndarray, colours: np.ndarray):
         # Every column has its own colour (colours == arange): the Jacobian itself.
         return compressed[np.argsort(colours)].T
     rows, cols = np.nonzero(pattern)
-    values = compressed[colours[cols], rows]
+    if len(rows) <= _UNROLL:
+        # Static slices (fused under vmap) rather than a gather.
+        values = jnp.stack(
+            [compressed[colours[j], i] for i, j in zip(rows, cols, strict=True)]
+        )
+    else:
+        values = compressed[colours[cols], rows]
     return SparseMatrix(
         values,
         tuple(int(r) for r in rows),
@@ -88,12 +115,24 @@ def _probe_mismatch(compressed_t, pattern, colours, product):
     weights = np.zeros((rows, compressed_t.shape[1]))
     i, j = np.nonzero(pattern)
     weights[i, colours[j]] = probe[j]
-    terms = compressed_t * jnp.asarray(weights, compressed_t.dtype)
-    reconstruction = jnp.sum(terms, axis=1)
     eps = jnp.finfo(compressed_t.dtype).eps
-    scale = jnp.max(jnp.sum(jnp.abs(terms), axis=1)) + jnp.max(jnp.abs(product))
-    error = jnp.max(jnp.abs(reconstruction - product))
-    return error > 100 * (num_cols + 1) * eps * scale
+    tol = 100 * (num_cols + 1) * eps
+    if rows * weights.shape[1] > _UNROLL:
+        terms = compressed_t * jnp.asarray(weights, compressed_t.dtype)
+        reconstruction = jnp.sum(terms, axis=1)
+        scale = jnp.max(jnp.sum(jnp.abs(terms), axis=1)) + jnp.max(jnp.abs(product))
+        return jnp.max(jnp.abs(reconstruction - product)) > tol * scale
+    # Small: on scalars, so that it fuses with the rest under vmap.
+    error, scale = [], []
+    for r in range(rows):
+        terms = [
+            compressed_t[r, c] * float(w) for c, w in enumerate(weights[r]) if w != 0
+        ]
+        recon = sum(terms[1:], terms[0]) if terms else 0.0
+        error.append(jnp.abs(recon - product[r]))
+        scale.append(sum(jnp.abs(v) for v in terms) + jnp.abs(product[r]))
+    maximum = lambda xs: functools.reduce(jnp.maximum, xs)
+    return maximum(error) > tol * maximum(scale)
 
 
 class LagrangianSystem(eqx.Module):
@@ -295,12 +334,13 @@ class LagrangianSystem(eqx.Module):
         def gradient(q_, qd_, t_):
             return jax.grad(self.lagrangian, argnums=(0, 1))(q_, qd_, t_, args)
 
-        extra = [jnp.asarray(probe_vector(n), dtype)[None]] if checked else []
-        dqd = jnp.concatenate([seeds, jnp.zeros((1, n), dtype), *extra])
-        dq = jnp.zeros_like(dqd).at[num].set(qd)
-        dt = jnp.zeros((dqd.shape[0],), dtype).at[num].set(1)
-        along = lambda dq_, dqd_, dt_: jax.jvp(gradient, (q, qd, t), (dq_, dqd_, dt_))
-        (grad_q, _), (_, dp) = jax.vmap(along, out_axes=((None, None), 0))(dq, dqd, dt)
+        zero, zero_t = jnp.zeros((n,), dtype), jnp.zeros((), dtype)
+        tangents = [(zero, jnp.asarray(seed, dtype), zero_t) for seed in seeds]
+        tangents.append((qd, zero, jnp.ones((), dtype)))
+        if checked:
+            tangents.append((zero, jnp.asarray(probe_vector(n), dtype), zero_t))
+        (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents)
+        dp = jnp.stack([d[1] for d in d_out])
         rhs = grad_q - dp[num]
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
@@ -322,8 +362,9 @@ class LagrangianSystem(eqx.Module):
         checked = not structure.jac_is_dense
         seeds, colours = _seeds(structure.jac, dtype)
         num = seeds.shape[0]
-        extra = [jnp.asarray(probe_vector(n), dtype)[None]] if checked else []
-        directions = jnp.concatenate([seeds, *extra])
+        directions = np.asarray(seeds)
+        if checked:
+            directions = np.concatenate([directions, probe_vector(n)[None]])
         products, bias = [], []
         for c in self.constraints:
             products_c, bias_c = c.jacobian_products(q, qd, t, args, directions)
