@@ -411,9 +411,9 @@ class LagrangianSystem(eqx.Module):
         if bias_correction is not None:
             bias = bias + bias_correction
         qdd, lam, singular = self.saddle_point_solver.solve(mass, jac, rhs, bias)
-        qdd = jnp.where(mismatch, 0.0, qdd)
-        lam = jnp.where(mismatch, 0.0, lam)
-        return qdd, lam, singular, mismatch
+        n = qdd.shape[0]
+        sol = jnp.where(mismatch, 0.0, jnp.concatenate([qdd, lam]))
+        return sol[:n], sol[n:], singular, mismatch
 
     def accelerations(self, q, qd, t, args=None):
         """Solve the equations of motion for `(qddot, multipliers)`.

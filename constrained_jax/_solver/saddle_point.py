@@ -405,8 +405,9 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
         lam = [jnp.zeros_like(rhs[0]) if v is None else v for v in lam]
         x = [_add(u[i], _dot([y[r][i] for r in range(k)], lam)) for i in range(n)]
         singular = singular | singular_s
-        x, lam = jnp.stack(x), jnp.stack(lam)
-        return jnp.where(singular, 0.0, x), jnp.where(singular, 0.0, lam), singular
+        # One `where` on both parts (XLA then evaluates the flag in fewer fusions).
+        sol = jnp.where(singular, 0.0, jnp.stack(x + lam))
+        return sol[:n], sol[n:], singular
 
 
 def _add(value, term, factor=None):
