@@ -148,10 +148,22 @@ class LagrangianSystem(eqx.Module):
     - `forces`: `Q(q, qd, t, args) -> (n,)`, generalised non-conservative forces, or
         `None`.
     - `saddle_point_solver`: how the KKT system is solved, an
-        `AbstractSaddlePointSolver`: [`constrained_jax.RangeSpaceLDL`][] (default;
-        any positive semidefinite `M`, i.e. any kinetic energy, even a singular one)
-        or [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole KKT matrix, also
-        for indefinite `M`, several times slower under `vmap`).
+        `AbstractSaddlePointSolver`. The default, `Automatic()`, is chosen at trace
+        time from the structure and size: the sparsity-aware unrolled
+        [`constrained_jax.RangeSpaceLDL`][] for small systems, the sparse range-space
+        method for large ones with a block-diagonal mass matrix, LAPACK's LU
+        otherwise (any positive semidefinite `M`, even a singular one). Or
+        [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole, dense KKT matrix,
+        also for indefinite `M`), or `RangeSpaceLDL(sparse=False)` (dense).
+
+    **Structure.** With a solver that takes sparse matrices (the default,
+    `RangeSpaceLDL()`), the sparsity patterns of `M` and `A` are detected once at
+    trace time by evaluating them at random states, and `M` and `A` are then built
+    from one forward-mode product per colour of a column colouring (a diagonal `M`
+    costs one product, not `n`). A fixed probe checks the patterns at every state:
+    if an entry the detection missed is nonzero (a coupling switched on by
+    `jnp.where` or by a parameter value), the solve is refused (`accelerations`
+    raises, `solve_accelerations` reports `singular`), never wrong.
 
     Coordinates `q` are arrays of shape `(n,)`; `t` is a scalar.
     """
