@@ -20,6 +20,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ._misc import default_float_dtype
@@ -53,6 +54,31 @@ class AbstractConstraint(eqx.Module):
         `A qddot + bias = 0`."""
         fn = lambda q_, t_: self.velocity_residual(q_, qd, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
+
+    def jacobian_products(
+        self, q, qd, t, args, directions: Float[Array, "s n"]
+    ) -> tuple[Float[Array, "k s"], Float[Array, " k"]]:
+        """`(A @ directions.T, Adot qdot + adot)` in one pass: the products of the
+        Jacobian with a few directions (the seeds of a column colouring, a probe)
+        and the acceleration bias."""
+        jac, _ = self.velocity_form(q, t, args)
+        directions = np.asarray(directions)
+        if directions.size <= 24:
+            # Static directions on scalars: fused under vmap (no batched `dot`).
+            columns = [
+                sum(jac[:, j] * float(v) for j, v in enumerate(row) if v != 0)
+                for row in directions
+            ]
+            products = jnp.stack(
+                [
+                    jnp.zeros(jac.shape[0], jac.dtype) if isinstance(c, int) else c
+                    for c in columns
+                ],
+                axis=1,
+            )
+        else:
+            products = jac @ jnp.asarray(directions.T, jac.dtype)
+        return products, self.acceleration_bias(q, qd, t, args)
 
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for the others, one per row of `A`:
@@ -90,6 +116,32 @@ class Holonomic(AbstractConstraint):
         # One forward pass instead of the Jacobian: dG/dq qdot + dG/dt.
         fn = lambda q_, t_: self.position_residual(q_, t_, args)
         return jax.jvp(fn, (q, t), (qd, jnp.ones_like(t)))[1]
+
+    def jacobian_products(self, q, qd, t, args, directions):
+        # One traced copy of G with two nested forward passes: the outer tangent
+        # (v, 0) gives dG/dq v = A v; the outer tangent (qdot, 1) applied to the
+        # velocity residual (the inner pass) gives the bias. All directions at once.
+        fn = lambda q_, t_: self.position_residual(q_, t_, args)
+
+        def with_velocity(q_, t_):
+            return jax.jvp(fn, (q_, t_), (qd, jnp.ones_like(t_)))
+
+        def along(dq, dt):
+            return jax.jvp(with_velocity, (q, t), (dq, dt))[1]
+
+        s = directions.shape[0]
+        dqs = jnp.concatenate([jnp.asarray(directions, q.dtype), qd[None]])
+        t = jnp.asarray(t, q.dtype)
+        dts = jnp.concatenate([jnp.zeros((s,), q.dtype), jnp.ones((1,), q.dtype)])
+        if (s + 1) * q.shape[0] <= 24:
+            # Few directions: one linearisation, its linear map applied to each
+            # (fused under vmap).
+            _, linear = jax.linearize(with_velocity, q, t)
+            outs = [linear(dqs[i], dts[i]) for i in range(s + 1)]
+            d_position = jnp.stack([o[0] for o in outs[:s]], axis=1)
+            return d_position, outs[s][1]
+        d_position, d_velocity = jax.vmap(along)(dqs, dts)
+        return d_position[:s].T, d_velocity[s]
 
     def num_constraints(self, n, args, dtype=None):
         dtype = default_float_dtype() if dtype is None else dtype
@@ -225,6 +277,15 @@ class Unilateral(AbstractConstraint):
     def velocity_residual(self, q, qd, t, args):
         return jnp.concatenate(
             [c.velocity_residual(q, qd, t, args) for c in self.constraints]
+        )
+
+    def jacobian_products(self, q, qd, t, args, directions):
+        parts = [
+            c.jacobian_products(q, qd, t, args, directions) for c in self.constraints
+        ]
+        return (
+            jnp.concatenate([p[0] for p in parts]),
+            jnp.concatenate([p[1] for p in parts]),
         )
 
     def acceleration_bias(self, q, qd, t, args):

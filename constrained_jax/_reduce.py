@@ -24,7 +24,8 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 from ._constraints import AbstractConstraint, Holonomic
 from ._custom_types import Args, ScalarLike
 from ._misc import default_float_dtype
-from ._system import LagrangianSystem
+from ._solver.sparse import as_dense
+from ._system import LagrangianSystem, PATTERN_MISMATCH_MESSAGE
 
 
 class Reduction(eqx.Module):
@@ -63,10 +64,10 @@ class Reduction(eqx.Module):
         q, qd = self.lift(s, sd, t, args)
         # qddot = d/dt (qdot) along (sdot, sddot, 1).
         _, qdd = jax.jvp(q_dot, (s, sd, t), (sd, sdd, jnp.ones_like(t)))
-        mass, rhs, jac, _ = self.full._equations(q, qd, t, args)
-        residual = mass @ qdd - rhs
-        lam, *_ = jnp.linalg.lstsq(jac.T, residual)
-        return lam
+        mass, rhs, jac, _, mismatch = self.full._equations(q, qd, t, args)
+        residual = as_dense(mass) @ qdd - rhs
+        lam, *_ = jnp.linalg.lstsq(as_dense(jac).T, residual)
+        return eqx.error_if(lam, mismatch, PATTERN_MISMATCH_MESSAGE)
 
 
 def reduce(

@@ -17,16 +17,122 @@ set to zero (see `LagrangianSystem.accelerations`). The force of constraint is
 `Q^c = A^T lambda`.
 """
 
+import functools
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
 from ._misc import inexact_asarray
-from ._solver.saddle_point import AbstractSaddlePointSolver, RangeSpaceLDL
+from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
+from ._solver.sparse import SparseMatrix
+from ._solver.sparse_schur import SparseSchur
+from ._structure import colouring, dense_structure, detect, probe_vector, Structure
+
+
+PATTERN_MISMATCH_MESSAGE = (
+    "The sparsity pattern of the mass matrix M or of the constraint Jacobian A, "
+    "detected at random states when the system was traced, misses an entry that is "
+    "nonzero at this state (a coupling switched on by `jnp.where`, by `t` or by a "
+    "parameter value the random draws did not hit), so the structured equations of "
+    "motion would be wrong and the solve is refused. Pass "
+    "`saddle_point_solver=cjax.FullKKTLU()` (or `cjax.RangeSpaceLDL(dense=True)`) "
+    "to the `LagrangianSystem`: these use dense matrices and no detected pattern."
+)
+
+
+# Up to this many entries (or directions), the compressed products are taken apart
+# on scalars and the directional derivatives pushed one by one: code that XLA fuses
+# into one loop under `jax.vmap` (batched gathers, `dot`s and small reductions are
+# not fused on CPU). Larger systems use vmapped, array-level code.
+_UNROLL = 24
+
+
+def _push(fn, primals, tangents: list):
+    """`(fn(*primals), [jvp of fn along each tangent])`: one linearisation, then the
+    linear map applied to each tangent (unrolled when few, else vmapped)."""
+    if len(tangents) * primals[0].shape[0] <= _UNROLL:
+        out, linear = jax.linearize(fn, *primals)
+        return out, [linear(*tangent) for tangent in tangents]
+    stacked = [jnp.stack(parts) for parts in zip(*tangents, strict=True)]
+    along = lambda *tangent: jax.jvp(fn, primals, tangent)
+    out, d_out = jax.vmap(along, out_axes=(None, 0))(*stacked)
+    take = lambda i: jax.tree_util.tree_map(lambda x: x[i], d_out)
+    return out, [take(i) for i in range(len(tangents))]
+
+
+def _takes_sparse(solver) -> bool:
+    # `SparseSchur` takes sparse matrices by its interface.
+    return solver.structured() or isinstance(solver, SparseSchur)
+
+
+def _seeds(pattern: np.ndarray, dtype):
+    """The seed directions of a column colouring of `pattern`, shape
+    `(num_colours, n)`, and the colour of each column."""
+    n = pattern.shape[1]
+    colours = colouring(pattern) if n else np.zeros((0,), int)
+    num = int(colours.max()) + 1 if n else 0
+    seeds = np.zeros((num, n))
+    seeds[colours, np.arange(n)] = 1.0
+    return seeds, colours
+
+
+def _decompress(compressed, pattern: np.ndarray, colours: np.ndarray):
+    """The matrix from its compressed products `compressed[c] = sum over the columns
+    j of colour c of column j`: dense when `pattern` is, else a `SparseMatrix`."""
+    if pattern.all():
+        # Every column has its own colour (colours == arange): the Jacobian itself.
+        return compressed[np.argsort(colours)].T
+    rows, cols = np.nonzero(pattern)
+    if len(rows) <= _UNROLL:
+        # Static slices (fused under vmap) rather than a gather.
+        values = jnp.stack(
+            [compressed[colours[j], i] for i, j in zip(rows, cols, strict=True)]
+        )
+    else:
+        values = compressed[colours[cols], rows]
+    return SparseMatrix(
+        values,
+        tuple(int(r) for r in rows),
+        tuple(int(c) for c in cols),
+        tuple(int(s) for s in pattern.shape),
+    )
+
+
+def _probe_mismatch(compressed_t, pattern, colours, product):
+    """Whether `product` (the matrix times the probe, by autodiff) differs beyond
+    round-off from the sparse reconstruction times the probe.
+
+    `compressed_t[i, c]` is entry `(i, j)` for the unique column `j` of colour `c` in
+    row `i`'s pattern, so the reconstruction is `sum_c compressed_t[i, c] w[i, c]`
+    with the static weights `w[i, c] = probe[j]`: elementwise, no dense matrix."""
+    rows, num_cols = pattern.shape
+    probe = probe_vector(num_cols)
+    weights = np.zeros((rows, compressed_t.shape[1]))
+    i, j = np.nonzero(pattern)
+    weights[i, colours[j]] = probe[j]
+    eps = jnp.finfo(compressed_t.dtype).eps
+    tol = 100 * (num_cols + 1) * eps
+    if rows * weights.shape[1] > _UNROLL:
+        terms = compressed_t * jnp.asarray(weights, compressed_t.dtype)
+        reconstruction = jnp.sum(terms, axis=1)
+        scale = jnp.max(jnp.sum(jnp.abs(terms), axis=1)) + jnp.max(jnp.abs(product))
+        return jnp.max(jnp.abs(reconstruction - product)) > tol * scale
+    # Small: on scalars, so that it fuses with the rest under vmap.
+    error, scale = [], []
+    for r in range(rows):
+        terms = [
+            compressed_t[r, c] * float(w) for c, w in enumerate(weights[r]) if w != 0
+        ]
+        recon = sum(terms[1:], terms[0]) if terms else 0.0
+        error.append(jnp.abs(recon - product[r]))
+        scale.append(sum(jnp.abs(v) for v in terms) + jnp.abs(product[r]))
+    maximum = lambda xs: functools.reduce(jnp.maximum, xs)
+    return maximum(error) > tol * maximum(scale)
 
 
 class LagrangianSystem(eqx.Module):
@@ -42,10 +148,22 @@ class LagrangianSystem(eqx.Module):
     - `forces`: `Q(q, qd, t, args) -> (n,)`, generalised non-conservative forces, or
         `None`.
     - `saddle_point_solver`: how the KKT system is solved, an
-        `AbstractSaddlePointSolver`: [`constrained_jax.RangeSpaceLDL`][] (default;
-        any positive semidefinite `M`, i.e. any kinetic energy, even a singular one)
-        or [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole KKT matrix, also
-        for indefinite `M`, several times slower under `vmap`).
+        `AbstractSaddlePointSolver`. The default, `Automatic()`, is chosen at trace
+        time from the structure and size: the sparsity-aware unrolled
+        [`constrained_jax.RangeSpaceLDL`][] for small systems, the sparse range-space
+        method for large ones with a block-diagonal mass matrix, LAPACK's LU
+        otherwise (any positive semidefinite `M`, even a singular one). Or
+        [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole, dense KKT matrix,
+        also for indefinite `M`), or `RangeSpaceLDL(sparse=False)` (dense).
+
+    **Structure.** With a solver that takes sparse matrices (the default,
+    `RangeSpaceLDL()`), the sparsity patterns of `M` and `A` are detected once at
+    trace time by evaluating them at random states, and `M` and `A` are then built
+    from one forward-mode product per colour of a column colouring (a diagonal `M`
+    costs one product, not `n`). A fixed probe checks the patterns at every state:
+    if an entry the detection missed is nonzero (a coupling switched on by
+    `jnp.where` or by a parameter value), the solve is refused (`accelerations`
+    raises, `solve_accelerations` reports `singular`), never wrong.
 
     Coordinates `q` are arrays of shape `(n,)`; `t` is a scalar.
     """
@@ -53,7 +171,7 @@ class LagrangianSystem(eqx.Module):
     lagrangian: Callable
     constraints: tuple[AbstractConstraint, ...] = ()
     forces: Callable | None = None
-    saddle_point_solver: AbstractSaddlePointSolver = RangeSpaceLDL()
+    saddle_point_solver: AbstractSaddlePointSolver = Automatic()
 
     def __init__(
         self,
@@ -61,7 +179,7 @@ class LagrangianSystem(eqx.Module):
         constraints: AbstractConstraint | Sequence[AbstractConstraint] = (),
         forces: Callable | None = None,
         *,
-        saddle_point_solver: AbstractSaddlePointSolver = RangeSpaceLDL(),
+        saddle_point_solver: AbstractSaddlePointSolver = Automatic(),
     ):
         if not callable(lagrangian):
             raise ValueError("`lagrangian` must be a callable L(q, qd, t, args).")
@@ -183,20 +301,94 @@ class LagrangianSystem(eqx.Module):
             [c.acceleration_bias(q, qd, t, args) for c in self.constraints]
         )
 
+    def num_constraints(self, n: int, args, dtype=None) -> int:
+        """`k`, the number of constraint rows (by shape evaluation)."""
+        return sum(c.num_constraints(n, args, dtype) for c in self.constraints)
+
+    def structure(self, q, t, args) -> Structure:
+        """The sparsity patterns of `M` and `A` that the equations of motion use:
+        detected once at trace time (cached; see `constrained_jax._structure`) when
+        the saddle-point solver takes sparse matrices, dense otherwise."""
+        n = q.shape[0]
+        k = self.num_constraints(n, args, q.dtype)
+        if not _takes_sparse(self.saddle_point_solver):
+            return dense_structure(n, k)
+        return detect(self, q, t, args, n, k)
+
     def _equations(self, q, qd, t, args):
-        """`M`, the right-hand side `Q - c`, `A` and the acceleration bias."""
-        lag = self.lagrangian
-        grad_q = jax.grad(lag, argnums=0)(q, qd, t, args)
-        mass = self.mass_matrix(q, qd, t, args)
-        # (dp/dq) qdot + dp/dt, one forward pass at fixed qdot.
-        p_along = lambda q_, t_: self.momentum(q_, qd, t_, args)
-        _, dp = jax.jvp(p_along, (q, t), (qd, jnp.ones_like(t)))
-        rhs = grad_q - dp
+        """`(M, Q - c, A, bias, mismatch)`, each part in one pass.
+
+        `M` and `A` are `SparseMatrix`es where their detected patterns are sparse
+        (dense arrays otherwise). Their nonzeros come from a column colouring: one
+        forward-mode product per colour (a diagonal `M` needs one, not `n`), all
+        pushed through one traced copy of the gradient of the Lagrangian (and of each
+        constraint) together with the directions that give the bias terms. With a
+        sparse pattern one more direction, a fixed probe `v`, checks the pattern at
+        the actual state: `mismatch` is true when `M v` or `A v` differs from the
+        product of the sparse matrix with `v` beyond round-off (an entry the
+        detection at random states missed); the solve must then be refused.
+        """
+        structure = self.structure(q, t, args)
+        mass, rhs, mismatch_m = self._lagrangian_pass(q, qd, t, args, structure)
+        jac, bias, mismatch_a = self._constraint_pass(q, qd, t, args, structure)
+        return mass, rhs, jac, bias, mismatch_m | mismatch_a
+
+    def _lagrangian_pass(self, q, qd, t, args, structure: Structure):
+        """`(M, Q - c, mismatch)`: `grad_q L` and `p = grad_qd L`, and the forward
+        products of `(grad_q L, p)` along `(0, seed, 0)` (the columns of `M`),
+        `(qdot, 0, 1)` (the terms `dp/dq qdot + dp/dt` of `c`) and, for a sparse
+        pattern, `(0, probe, 0)`, all in one traced pass."""
+        n, dtype = q.shape[0], q.dtype
+        checked = not structure.mass_is_dense
+        seeds, colours = _seeds(structure.mass, dtype)
+        num = seeds.shape[0]
+
+        def gradient(q_, qd_, t_):
+            return jax.grad(self.lagrangian, argnums=(0, 1))(q_, qd_, t_, args)
+
+        zero, zero_t = jnp.zeros((n,), dtype), jnp.zeros((), dtype)
+        tangents = [(zero, jnp.asarray(seed, dtype), zero_t) for seed in seeds]
+        tangents.append((qd, zero, jnp.ones((), dtype)))
+        if checked:
+            tangents.append((zero, jnp.asarray(probe_vector(n), dtype), zero_t))
+        (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents)
+        dp = jnp.stack([d[1] for d in d_out])
+        rhs = grad_q - dp[num]
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
-        jac = self.constraint_jacobian(q, t, args)
-        bias = self.acceleration_bias(q, qd, t, args)
-        return mass, rhs, jac, bias
+        mass = _decompress(dp[:num], structure.mass, colours)
+        mismatch = jnp.array(False)
+        if checked:
+            mismatch = _probe_mismatch(dp[:num].T, structure.mass, colours, dp[-1])
+        return mass, rhs, mismatch
+
+    def _constraint_pass(self, q, qd, t, args, structure: Structure):
+        """`(A, bias, mismatch)`: the products of `A` with the seeds of its column
+        colouring (and a probe, for a sparse pattern) and the acceleration bias, one
+        traced pass per constraint."""
+        n, dtype = q.shape[0], q.dtype
+        k = structure.jac.shape[0]
+        mismatch = jnp.array(False)
+        if k == 0:
+            return jnp.zeros((0, n), dtype), jnp.zeros((0,), dtype), mismatch
+        checked = not structure.jac_is_dense
+        seeds, colours = _seeds(structure.jac, dtype)
+        num = seeds.shape[0]
+        directions = np.asarray(seeds)
+        if checked:
+            directions = np.concatenate([directions, probe_vector(n)[None]])
+        products, bias = [], []
+        for c in self.constraints:
+            products_c, bias_c = c.jacobian_products(q, qd, t, args, directions)
+            products.append(products_c)
+            bias.append(bias_c)
+        products, bias = jnp.concatenate(products), jnp.concatenate(bias)
+        jac = _decompress(products[:, :num].T, structure.jac, colours)
+        if checked:
+            mismatch = _probe_mismatch(
+                products[:, :num], structure.jac, colours, products[:, -1]
+            )
+        return jac, bias, mismatch
 
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
         """`G_j(q, t)` for holonomic rows and `0` for Pfaffian ones, stacked like the
@@ -220,11 +412,20 @@ class LagrangianSystem(eqx.Module):
         costs more than its arithmetic). `bias_correction` (shape `(k,)`) is added to
         the acceleration bias, as Baumgarte stabilization does.
         """
+        qdd, lam, singular, mismatch = self._solve(q, qd, t, args, bias_correction)
+        return qdd, lam, singular | mismatch
+
+    def _solve(self, q, qd, t, args, bias_correction=None):
+        """`(qddot, lambda, singular, mismatch)`: `mismatch` is the run-time check of
+        the sparsity patterns (see `_equations`); both flags zero the solution."""
         t = jnp.asarray(t, q.dtype)
-        mass, rhs, jac, bias = self._equations(q, qd, t, args)
+        mass, rhs, jac, bias, mismatch = self._equations(q, qd, t, args)
         if bias_correction is not None:
             bias = bias + bias_correction
-        return self.saddle_point_solver.solve(mass, jac, rhs, bias)
+        qdd, lam, singular = self.saddle_point_solver.solve(mass, jac, rhs, bias)
+        n = qdd.shape[0]
+        sol = jnp.where(mismatch, 0.0, jnp.concatenate([qdd, lam]))
+        return sol[:n], sol[n:], singular, mismatch
 
     def accelerations(self, q, qd, t, args=None):
         """Solve the equations of motion for `(qddot, multipliers)`.
@@ -242,6 +443,11 @@ class LagrangianSystem(eqx.Module):
         0, so its velocity is held). See
         [`constrained_jax.AbstractSaddlePointSolver`][].
 
+        Also raises if the sparsity patterns of `M` and `A`, found at random states
+        when the system is first traced, miss an entry that is nonzero at this state
+        (a coupling switched on by `jnp.where`, by `t` or by an integer parameter):
+        pass `saddle_point_solver=cjax.FullKKTLU()` (dense, no pattern) then.
+
         Raises (at run time, also under `jit`) if the equations have no solution or
         no unique multipliers: a force acts along a direction without inertia that
         the constraints leave free (e.g. a massless coordinate with a potential
@@ -249,7 +455,8 @@ class LagrangianSystem(eqx.Module):
         """
         q, qd = inexact_asarray(q), inexact_asarray(qd)
         self.check(q, qd, t, args)
-        qdd, lam, singular = self.solve_accelerations(q, qd, t, args)
+        qdd, lam, singular, mismatch = self._solve(q, qd, t, args)
+        qdd, lam = eqx.error_if((qdd, lam), mismatch, PATTERN_MISMATCH_MESSAGE)
         qdd, lam = eqx.error_if(
             (qdd, lam),
             singular,

@@ -12,9 +12,11 @@ import functools
 import equinox as eqx
 import jax.numpy as jnp
 import jax.scipy as jsp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .dense_lu import dense_factor, lu_solve_unrolled
+from .sparse import as_dense, SparseMatrix
 
 
 class AbstractSaddlePointSolver(eqx.Module):
@@ -52,6 +54,12 @@ class AbstractSaddlePointSolver(eqx.Module):
         `singular` is false for a free gauge direction (no inertia, no force, see the
         class docstring): `x` is then the solution with zero component at its pivot.
         """
+
+    def structured(self) -> bool:
+        """Whether `solve` takes `M` and `A` as `SparseMatrix`es with patterns
+        detected at trace time (`LagrangianSystem` then builds them so, checking the
+        patterns at run time); if `False` it gets dense arrays and no pattern."""
+        return False
 
 
 def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
@@ -92,6 +100,7 @@ class FullKKTLU(AbstractSaddlePointSolver):
     unroll_max: int = 12
 
     def solve(self, mass, jac, rhs, bias):
+        mass, jac = as_dense(mass), as_dense(jac)
         n, k = mass.shape[0], jac.shape[0]
         if k == 0:
             matrix, vector = mass, rhs
@@ -116,7 +125,28 @@ class FullKKTLU(AbstractSaddlePointSolver):
         return sol[:n], sol[n:], singular
 
 
-def ldl_factor_unrolled(a: list[list[Array]], gauge: bool = False):
+def _max_abs(values: list) -> Array:
+    return functools.reduce(jnp.maximum, [jnp.abs(v) for v in values])
+
+
+def _minus_sum(start, products: list):
+    """`start - sum(products)`, where `None` is a structural zero (so is the
+    result when every term is one)."""
+    out = start
+    for term in products:
+        if term is not None:
+            out = -term if out is None else out - term
+    return out
+
+
+def _dot(u: list, v: list):
+    """`sum_i u_i v_i` over the entries that are not structural zeros (`None`)."""
+    pairs = zip(u, v, strict=True)
+    terms = [None if a is None or b is None else -a * b for a, b in pairs]
+    return _minus_sum(None, terms)
+
+
+def ldl_factor_unrolled(a: list[list], gauge: bool = False):
     """`a = L D L^T` without pivoting, on a symmetric matrix given as nested lists of
     scalars, unrolled at trace time.
 
@@ -125,6 +155,12 @@ def ldl_factor_unrolled(a: list[list[Array]], gauge: bool = False):
     become batched `dot`s and gathers, which XLA on CPU does not fuse). Without
     pivoting this is backward stable for positive definite `a`; for an indefinite `a`
     it works whenever no leading principal minor vanishes.
+
+    Entries that are `None` are structural zeros: they cost nothing, and the fill-in
+    is tracked symbolically (an entry of `L` is `None` when every term of it is), so
+    a diagonal or banded `a` costs what its nonzeros cost. The arithmetic on the
+    other entries is that of the dense elimination, so the results agree to the last
+    bit. (A structurally zero diagonal entry is a zero pivot.)
 
     A pivot below `10 m eps max|a|` is a zero pivot (`null[j]`), replaced by 1 in `d`
     so that nothing is NaN. What it means depends on `gauge`:
@@ -139,35 +175,49 @@ def ldl_factor_unrolled(a: list[list[Array]], gauge: bool = False):
         `2 sqrt(threshold max|a|)`): impossible for positive semidefinite `a`, where
         `t^2 <= d_i d_j`, so an indefinite matrix that needs pivoting.
 
-    Returns `(L, d, null, breakdown)`: `L[i][j]` for `j < i` (unit diagonal implied),
-    the pivots `d`, the zero-pivot flags `null` and the `breakdown` flag.
+    Returns `(L, d, null, breakdown)`: `L[i][j]` for `j < i` (unit diagonal implied;
+    `None` where structurally zero), the pivots `d`, the zero-pivot flags `null` and
+    the `breakdown` flag.
     """
     m = len(a)
     # `a` is symmetric: its lower triangle holds every entry.
-    scale = functools.reduce(
-        jnp.maximum, [jnp.abs(a[i][j]) for i in range(m) for j in range(i + 1)]
-    )
+    entries = [a[i][j] for i in range(m) for j in range(i + 1) if a[i][j] is not None]
+    scale = _max_abs(entries)
     threshold = 10 * m * jnp.finfo(jnp.result_type(scale)).eps * scale
     # The column test `|t| > 2 sqrt(threshold scale)`, squared: no square root.
     column_threshold_sq = 4 * threshold * scale
-    lower: list[list[Array]] = [[] for _ in range(m)]
+    zero = jnp.zeros_like(scale)
+    lower: list[list] = [[] for _ in range(m)]
     d: list[Array] = []
     null: list[Array] = []
     breakdown = jnp.array(False)
     for j in range(m):
-        s = a[j][j]
-        for p in range(j):
-            s = s - lower[j][p] * lower[j][p] * d[p]
+        s = _minus_sum(
+            a[j][j],
+            [
+                None if lower[j][p] is None else lower[j][p] * lower[j][p] * d[p]
+                for p in range(j)
+            ],
+        )
+        s = zero if s is None else s
         small = jnp.abs(s) <= threshold
         null.append(small)
         safe = jnp.where(small, jnp.ones_like(s), s)
         d.append(safe)
         column_big = []
         for i in range(j + 1, m):
-            t = a[i][j]
-            for p in range(j):
-                t = t - lower[i][p] * lower[j][p] * d[p]
-            if gauge:
+            t = _minus_sum(
+                a[i][j],
+                [
+                    None
+                    if lower[i][p] is None or lower[j][p] is None
+                    else lower[i][p] * lower[j][p] * d[p]
+                    for p in range(j)
+                ],
+            )
+            if t is None:
+                lower[i].append(None)
+            elif gauge:
                 column_big.append(t * t > column_threshold_sq)
                 lower[i].append(jnp.where(small, jnp.zeros_like(t), t / safe))
             else:
@@ -181,8 +231,10 @@ def ldl_factor_unrolled(a: list[list[Array]], gauge: bool = False):
     return lower, d, null, breakdown
 
 
-def ldl_solve_unrolled(lower, d, b: list[Array], null=None, size=None):
-    """Solve `L D L^T x = b` given `ldl_factor_unrolled` (lists of scalars).
+def ldl_solve_unrolled(lower, d, b: list, null=None, size=None):
+    """Solve `L D L^T x = b` given `ldl_factor_unrolled` (lists of scalars; `None`
+    entries of `L` and `b` are structural zeros, and so are those of `x` that
+    nothing fills).
 
     With the zero-pivot flags `null` of a `gauge=True` factorisation, `x`'s entries at
     zero pivots are set to 0, and `inconsistent` says that `b` has a component along
@@ -192,30 +244,52 @@ def ldl_solve_unrolled(lower, d, b: list[Array], null=None, size=None):
     Returns `(x, inconsistent)`.
     """
     m = len(d)
-    y: list[Array] = []
+    y: list = []
     for i in range(m):
-        s = b[i]
-        for p in range(i):
-            s = s - lower[i][p] * y[p]
-        y.append(s)
+        y.append(
+            _minus_sum(
+                b[i],
+                [
+                    None if lower[i][p] is None or y[p] is None else lower[i][p] * y[p]
+                    for p in range(i)
+                ],
+            )
+        )
     inconsistent = jnp.array(False)
     if null is not None:
         if size is None:
-            size = functools.reduce(jnp.maximum, [jnp.abs(v) for v in b])
+            size = _max_abs([v for v in b if v is not None])
         tol = 100 * m * jnp.finfo(jnp.result_type(size)).eps * size
-        inconsistent = functools.reduce(
-            jnp.logical_or, [null[j] & (jnp.abs(y[j]) > tol) for j in range(m)]
-        )
+        flags = [null[j] & (jnp.abs(y[j]) > tol) for j in range(m) if y[j] is not None]
+        if flags:
+            inconsistent = functools.reduce(jnp.logical_or, flags)
     x: list = [None] * m
     for i in reversed(range(m)):
-        if null is None:
+        if y[i] is None:
+            s = None
+        elif null is None:
             s = y[i] / d[i]
         else:
             s = jnp.where(null[i], jnp.zeros_like(y[i]), y[i] / d[i])
-        for p in range(i + 1, m):
-            s = s - lower[p][i] * x[p]
-        x[i] = s
+        x[i] = _minus_sum(
+            s,
+            [
+                None if lower[p][i] is None or x[p] is None else lower[p][i] * x[p]
+                for p in range(i + 1, m)
+            ],
+        )
     return x, inconsistent
+
+
+def _entries(matrix, shape) -> list[list]:
+    """Nested lists of scalars, `None` outside the pattern of a `SparseMatrix`."""
+    rows, cols = shape
+    if isinstance(matrix, SparseMatrix):
+        out: list[list] = [[None] * cols for _ in range(rows)]
+        for p, (i, j) in enumerate(zip(matrix.rows, matrix.cols, strict=True)):
+            out[i][j] = matrix.values[p]
+        return out
+    return [[matrix[i, j] for j in range(cols)] for i in range(rows)]
 
 
 class RangeSpaceLDL(AbstractSaddlePointSolver):
@@ -238,6 +312,11 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
     fuses into a few elementwise loops: on the scenes of `benchmarks/dynamics.py` it is
     several times faster than [`constrained_jax.FullKKTLU`][] and close to hand-written
     equations. Systems with `n + k > unroll_max` use `FullKKTLU`.
+
+    **Structure.** Given `M` and `A` as sparse matrices (as `LagrangianSystem` passes
+    them when `sparse=True`: patterns detected at trace time), the structural zeros
+    of `M~`, of its factor (fill-in tracked symbolically), of `M~^-1 A^T` and of the
+    Schur complement are skipped; the arithmetic on the rest is the dense one.
 
     **Free gauge directions.** For positive semidefinite `M`, `M~` is singular exactly
     when some `v != 0` has `M v = 0` and `A v = 0` (see
@@ -263,33 +342,40 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
     """
 
     unroll_max: int = 12
+    sparse: bool = True
+
+    def structured(self) -> bool:
+        return self.sparse
 
     def solve(self, mass, jac, rhs, bias):
-        n, k = mass.shape[0], jac.shape[0]
+        n, k = rhs.shape[0], bias.shape[0]
         if n + k > self.unroll_max:
             return FullKKTLU(unroll_max=0).solve(mass, jac, rhs, bias)
-        m = [[mass[i, j] for j in range(n)] for i in range(n)]
-        a = [[jac[r, i] for i in range(n)] for r in range(k)]
+        m = _entries(mass, (n, n))
+        a = _entries(jac, (k, n))
         f = [rhs[i] for i in range(n)]
         b = [bias[r] for r in range(k)]
         if k > 0:
-            trace_m = sum(jnp.abs(m[i][i]) for i in range(n))
-            trace_a = sum(a[r][i] * a[r][i] for r in range(k) for i in range(n))
+            diag_m = [m[i][i] for i in range(n) if m[i][i] is not None]
+            trace_m = (
+                sum(jnp.abs(v) for v in diag_m) if diag_m else jnp.zeros_like(f[0])
+            )
+            trace_a = _dot([v for row in a for v in row], [v for row in a for v in row])
+            trace_a = jnp.zeros_like(trace_m) if trace_a is None else trace_a
             one = jnp.ones_like(trace_m)
             rho = jnp.where(trace_m > 0, trace_m, one) / jnp.where(
                 trace_a > 0, trace_a, one
             )
+            columns = [[a[r][i] for r in range(k)] for i in range(n)]
             m = [
-                [
-                    m[i][j] + rho * sum(a[r][i] * a[r][j] for r in range(k))
-                    for j in range(n)
-                ]
+                [_add(m[i][j], _dot(columns[i], columns[j]), rho) for j in range(n)]
                 for i in range(n)
             ]
-            f = [f[i] - rho * sum(a[r][i] * b[r] for r in range(k)) for i in range(n)]
-        lower, d, null, singular = ldl_factor_unrolled(m, gauge=True)
+            f = [_add(f[i], _dot(columns[i], b), -rho) for i in range(n)]
+        lower, d, null, breakdown = ldl_factor_unrolled(m, gauge=True)
         u, inconsistent = ldl_solve_unrolled(lower, d, f, null)
-        singular = singular | inconsistent
+        singular = breakdown | inconsistent
+        u = [jnp.zeros_like(rhs[0]) if v is None else v for v in u]
         if k == 0:
             x = jnp.stack(u)
             return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
@@ -300,26 +386,40 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
         # the factorisation need not fire: M = [[-1/2, -1/2], [-1/2, 1/2]],
         # A = [1, 1] (a nonsingular KKT matrix) gives rho = 1/2, M~ = diag(0, 1),
         # whose zero pivot has a zero column, but A v = 1: without this check the
-        # solve would return a wrong answer instead of reporting `singular`.
-        size_a = functools.reduce(jnp.maximum, [jnp.abs(v) for row in a for v in row])
+        # solve would return a wrong answer instead of reporting `singular`. (Nor
+        # can `M_ii >= 0` replace it for a diagonal M: in a nearly singular case,
+        # M = diag(1, 0), A = (1, 1e-8), the pivot of M~ falls below the threshold
+        # while A v is of order 1e-8, far above round-off; only this check refuses.)
+        size_a = _max_abs([v for row in a for v in row if v is not None])
         for r in range(k):
             y_r, inconsistent = ldl_solve_unrolled(lower, d, a[r], null, size_a)
             y.append(y_r)
             singular = singular | inconsistent
-        schur = [
-            [sum(a[r][i] * y[s][i] for i in range(n)) for s in range(k)]
-            for r in range(k)
-        ]
+        schur = [[_dot(a[r], y[s]) for s in range(k)] for r in range(k)]
         lower_s, d_s, _, singular_s = ldl_factor_unrolled(schur)
         lam, _ = ldl_solve_unrolled(
             lower_s,
             d_s,
-            [-b[r] - sum(a[r][i] * u[i] for i in range(n)) for r in range(k)],
+            [_minus_sum(-b[r], [_dot(a[r], u)]) for r in range(k)],
         )
-        x = [u[i] + sum(y[r][i] * lam[r] for r in range(k)) for i in range(n)]
+        lam = [jnp.zeros_like(rhs[0]) if v is None else v for v in lam]
+        x = [_add(u[i], _dot([y[r][i] for r in range(k)], lam)) for i in range(n)]
         singular = singular | singular_s
-        x, lam = jnp.stack(x), jnp.stack(lam)
-        return jnp.where(singular, 0.0, x), jnp.where(singular, 0.0, lam), singular
+        # One `where` on both parts (XLA then evaluates the flag in fewer fusions).
+        sol = jnp.where(singular, 0.0, jnp.stack(x + lam))
+        return sol[:n], sol[n:], singular
+
+
+def _add(value, term, factor=None):
+    """`value + factor * term` (`value + term` without `factor`), with `None` as a
+    structural zero."""
+    if term is None:
+        return value
+    if factor is None:
+        return term if value is None else value + term
+    if value is None:
+        return factor * term
+    return value + factor * term
 
 
 FullKKTLU.__init__.__doc__ = RangeSpaceLDL.__init__.__doc__ = """**Arguments:**
@@ -327,3 +427,72 @@ FullKKTLU.__init__.__doc__ = RangeSpaceLDL.__init__.__doc__ = """**Arguments:**
 - `unroll_max`: the largest `n + k` solved by unrolled elimination (trace and compile
     time grow like `(n + k)**3`); larger systems use LAPACK's LU on the full matrix.
 """
+
+
+class Automatic(AbstractSaddlePointSolver):
+    """The default: a method chosen at trace time from the structure and size.
+
+    - `n + k <= unroll_max`: [`constrained_jax.RangeSpaceLDL`][], unrolled on the
+        nonzeros of the detected patterns (fused under `jax.vmap`; the fastest for the
+        small systems of the scenes).
+    - larger, with a mass matrix that is block diagonal with a structurally nonzero
+        diagonal (Cartesian and maximal coordinates, e.g. `scenes.chain`): the sparse
+        range-space method `SparseSchur`, whose cost follows the nonzeros.
+    - otherwise: [`constrained_jax.FullKKTLU`][] with LAPACK's LU.
+
+    Like `RangeSpaceLDL`, every choice handles free gauge directions and reports
+    singular systems. For an indefinite `M` (not a kinetic energy) choose
+    `FullKKTLU()` explicitly.
+
+    The threshold is measured (`n`-link chain, one trajectory, Tsit5, against
+    LAPACK's LU): at `n + k = 6` the unrolled solve is faster to run (2.5x) and to
+    compile; at `n + k = 9` and `12` it runs 1.8-1.9x slower for one trajectory and
+    compiles 2-3x slower (under `jax.vmap` over 1,000 states it is still about 2x
+    faster). So the default is never the slower one for a single trajectory; pass
+    `RangeSpaceLDL()` (unrolled up to 12) for large batches of mid-sized systems.
+
+    **Arguments:**
+
+    - `unroll_max`: the largest `n + k` solved by the unrolled elimination.
+    """
+
+    unroll_max: int = 6
+
+    def structured(self) -> bool:
+        return True
+
+    def choose(self, mass, n: int, k: int) -> AbstractSaddlePointSolver:
+        """The solver used for a mass matrix `mass` (dense or `SparseMatrix`)."""
+        if n + k <= self.unroll_max:
+            return RangeSpaceLDL(unroll_max=self.unroll_max)
+        if isinstance(mass, SparseMatrix) and _block_diagonal(mass.pattern()):
+            from .sparse_schur import SparseSchur
+
+            return SparseSchur()
+        return FullKKTLU(unroll_max=0)
+
+    def solve(self, mass, jac, rhs, bias):
+        n, k = rhs.shape[0], bias.shape[0]
+        solver = self.choose(mass, n, k)
+        if isinstance(solver, FullKKTLU):
+            mass, jac = as_dense(mass), as_dense(jac)
+        return solver.solve(mass, jac, rhs, bias)
+
+
+def _block_diagonal(pattern: np.ndarray) -> bool:
+    """Whether a symmetric pattern is block diagonal (its connected components are
+    contiguous ranges of indices, each block not larger than 6) with a nonzero
+    diagonal. Dense blocks are assumed (each is factored as a whole)."""
+    n = pattern.shape[0]
+    if not np.all(np.diagonal(pattern)):
+        return False
+    start = 0
+    while start < n:
+        end = start + 1
+        while end < n and np.any(pattern[start:end, end:]):
+            reach = np.nonzero(np.any(pattern[start:end], axis=0))[0]
+            end = int(reach.max()) + 1
+        if end - start > 6:
+            return False
+        start = end
+    return True

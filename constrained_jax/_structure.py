@@ -1,0 +1,229 @@
+"""Structure of the equations of motion, found once at trace time.
+
+The sparsity patterns of the mass matrix `M = d^2 L / dqdot^2` (n x n) and of the
+constraint Jacobian `A` (k x n), and which rows of `A` are constant in `q` and `t`, are
+found by evaluating them concretely (outside the traced program) at two random states
+and taking the union of the nonzeros (NaN and inf count as nonzero). Float parameters
+in `args` are drawn at random too, so that a parameter that happens to be zero (a
+massless coordinate, `I = 0`) does not hide an entry that another value fills.
+
+A pattern found at random states can still miss an entry that is nonzero at the actual
+state (a `jnp.where` branch, a switch in `t` or in an integer parameter): the
+structured evaluation in `LagrangianSystem` checks `M v` and `A v` along a fixed probe
+`v` at run time and refuses the solve on a mismatch. Detection itself never fails: if
+anything goes wrong (the Lagrangian closes over traced values, raises, integer or
+boolean parameters are traced) the pattern is dense, which is always right.
+
+Results are cached per system and per shapes and dtypes of `q` and `args`, so the
+several traces of one vector field (diffrax traces it more than once) detect once.
+"""
+
+import collections
+import dataclasses
+import functools
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Structure:
+    """Static (trace-time) structure of the equations of motion of one system.
+
+    **Attributes:**
+
+    - `mass`: boolean `(n, n)` pattern of `M` (symmetric).
+    - `jac`: boolean `(k, n)` pattern of `A`.
+    - `constant_rows`: boolean `(k,)`, the rows of `A` found constant in `q` and `t`.
+    - `detected`: `False` when detection gave up (then the patterns are dense).
+    """
+
+    mass: np.ndarray
+    jac: np.ndarray
+    constant_rows: np.ndarray
+    detected: bool
+
+    @property
+    def mass_is_dense(self) -> bool:
+        return bool(self.mass.all())
+
+    @property
+    def jac_is_dense(self) -> bool:
+        return bool(self.jac.all())
+
+
+def dense_structure(n: int, k: int) -> Structure:
+    """The always-right fallback: every entry may be nonzero."""
+    return Structure(
+        np.ones((n, n), bool), np.ones((k, n), bool), np.zeros((k,), bool), False
+    )
+
+
+def colouring(pattern: np.ndarray) -> np.ndarray:
+    """Greedy column colouring (Curtis, Powell and Reid): columns whose row patterns
+    are disjoint share a colour, so one directional derivative along the sum of their
+    unit vectors gives all their nonzeros.
+
+    Returns the colour of each column, `0 .. num_colours - 1`.
+
+    **Reference:** A. R. Curtis, M. J. D. Powell and J. K. Reid, *On the estimation
+    of sparse Jacobian matrices*, J. Inst. Maths Applics 13 (1974) 117-119.
+    """
+    pattern = np.asarray(pattern, bool)
+    num_cols = pattern.shape[1]
+    colours = np.zeros(num_cols, int)
+    used_rows: list[np.ndarray] = []
+    for j in range(num_cols):
+        rows = pattern[:, j]
+        for c, used in enumerate(used_rows):
+            if not np.any(used & rows):
+                colours[j] = c
+                used_rows[c] = used | rows
+                break
+        else:
+            colours[j] = len(used_rows)
+            used_rows.append(rows.copy())
+    return colours
+
+
+def probe_vector(n: int) -> np.ndarray:
+    """A fixed vector with distinct entries in `[1, 2)` (the fractional parts of
+    multiples of the golden ratio): the run-time check of the patterns compares the
+    products with it."""
+    golden = (np.sqrt(5.0) - 1) / 2
+    return 1 + np.mod(golden * np.arange(1, n + 1), 1.0)
+
+
+# ---------------------------------------------------------------------------------
+# Detection
+
+
+_CACHE: collections.OrderedDict = collections.OrderedDict()
+_CACHE_SIZE = 256
+_LOCK = threading.Lock()
+
+
+def _is_tracer(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _random_like(leaf, rng):
+    """A random value of a leaf's shape and dtype (floats only; `None` for leaves
+    that cannot be drawn)."""
+    if isinstance(leaf, (bool, int)) and not _is_tracer(leaf):
+        return leaf
+    if isinstance(leaf, float):
+        return float(rng.uniform(0.5, 1.5))
+    if isinstance(leaf, complex):
+        return complex(rng.uniform(0.5, 1.5), rng.uniform(0.5, 1.5))
+    if not hasattr(leaf, "dtype") or not hasattr(leaf, "shape"):
+        return leaf  # a static leaf (a string, a callable): used as it is
+    dtype = np.dtype(leaf.dtype)
+    if jnp.issubdtype(dtype, jnp.inexact):
+        value = rng.uniform(0.5, 1.5, leaf.shape)
+        if jnp.issubdtype(dtype, jnp.complexfloating):
+            value = value + 1j * rng.uniform(0.5, 1.5, leaf.shape)
+        return np.asarray(value, dtype)
+    if _is_tracer(leaf):
+        raise _GiveUp("a traced integer or boolean parameter")
+    return np.asarray(leaf)
+
+
+class _GiveUp(Exception):
+    pass
+
+
+def _leaf_key(leaf):
+    if hasattr(leaf, "shape") and hasattr(leaf, "dtype"):
+        key = (tuple(leaf.shape), str(leaf.dtype))
+        if not _is_tracer(leaf) and not jnp.issubdtype(leaf.dtype, jnp.inexact):
+            # Concrete integer/boolean parameters are used as they are: part of the key.
+            key = key + (np.asarray(leaf).tobytes(),)
+        return key
+    if isinstance(leaf, (bool, int, str)):
+        return (type(leaf).__name__, leaf)
+    return (type(leaf).__name__,)
+
+
+def _system_key(system):
+    """Identity of the user functions (the solver does not change the structure)."""
+    parts = [system.lagrangian, system.forces]
+    parts.extend(jax.tree_util.tree_leaves(system.constraints))
+    return tuple(id(p) for p in parts), parts
+
+
+def detect(system, q, t, args, n: int, k: int) -> Structure:
+    """The `Structure` of `system` for coordinates like `q` and parameters like
+    `args` (cached). Never raises: on any failure the patterns are dense."""
+    try:
+        ids, keep_alive = _system_key(system)
+        leaves, treedef = jax.tree_util.tree_flatten(args)
+        key = (
+            ids,
+            (n, k, str(q.dtype)),
+            treedef,
+            tuple(_leaf_key(leaf) for leaf in leaves),
+        )
+        hash(key)
+    except Exception:
+        return dense_structure(n, k)
+    with _LOCK:
+        if key in _CACHE:
+            _CACHE.move_to_end(key)
+            return _CACHE[key][0]
+    structure = _detect(system, q, args, n, k)
+    with _LOCK:
+        _CACHE[key] = (structure, keep_alive)
+        while len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    return structure
+
+
+def _detect(system, q, args, n, k) -> Structure:
+    try:
+        with jax.ensure_compile_time_eval():
+            return _evaluate(system, q.dtype, args, n, k)
+    except Exception:
+        return dense_structure(n, k)
+
+
+def _nonzero(x) -> np.ndarray:
+    x = np.asarray(x)
+    return (x != 0) | ~np.isfinite(x)
+
+
+def _jacobian(system, q, t, args):
+    return system.constraint_jacobian(q, t, args)
+
+
+def _evaluate(system, dtype, args, n, k) -> Structure:
+    rng = np.random.default_rng(20260512)
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    mass = np.zeros((n, n), bool)
+    jac = np.zeros((k, n), bool)
+    constant = np.ones((k,), bool)
+    for _ in range(2):
+        args_r = jax.tree_util.tree_unflatten(
+            treedef, [_random_like(leaf, rng) for leaf in leaves]
+        )
+        q_r = jnp.asarray(rng.normal(size=n), dtype)
+        qd_r = jnp.asarray(rng.normal(size=n), dtype)
+        t_r = jnp.asarray(rng.uniform(0.1, 1.0), dtype)
+        mass_r = jax.jacfwd(system.momentum, argnums=1)(q_r, qd_r, t_r, args_r)
+        mass = mass | _nonzero(mass_r)
+        if k:
+            # A, and its derivative along a random direction in (q, t): a row whose
+            # derivative vanishes at both draws is constant in q and t.
+            dq = jnp.asarray(rng.normal(size=n), dtype)
+            dt = jnp.asarray(rng.normal(), dtype)
+            jac_fn = functools.partial(_jacobian, system, args=args_r)
+            jac_r, djac_r = jax.jvp(jac_fn, (q_r, t_r), (dq, dt))
+            jac = jac | _nonzero(jac_r)
+            constant = constant & ~np.any(_nonzero(djac_r), axis=1)
+    for x in (mass, jac, constant):
+        if _is_tracer(x):
+            raise _GiveUp("traced")
+    mass = np.asarray(mass | mass.T, bool)
+    return Structure(mass, np.asarray(jac, bool), np.asarray(constant, bool), True)
