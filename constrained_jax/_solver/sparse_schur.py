@@ -10,6 +10,7 @@ per level, so the program grows like the number of levels, not like the size.
 """
 
 import functools
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -146,6 +147,11 @@ class _Plan:
                         )
             offset += s * s * nb
         self.a_rows, self.a_cols = np.asarray(a_rows, int), np.asarray(a_cols, int)
+        nnz_a = len(a_rows)
+        self.m_rows = _sum_index(m_rows, n, nnz_m)
+        self.m_cols = np.asarray(m_cols, int)
+        self.a_by_row = _sum_index(a_rows, k, nnz_a)  # A v
+        self.a_by_col = _sum_index(a_cols, n, nnz_a)  # A^T v
         if k == 0:
             return
         # The pattern of S = A M^-1 A^T, and each of its entries as a sum of
@@ -168,46 +174,126 @@ class _Plan:
                     if r != s_:
                         edges.add((int(s_), int(r)))
                     triples.append((e1, minv_pos[(i, j)], e2, (int(s_), int(r))))
-        levels, fill, neighbours = _elimination_levels(k, edges)
-        # S's values: the diagonal (positions 0..k-1) then the filled edges.
-        key = {(i, i): i for i in range(k)}
-        for p, edge in enumerate(fill):
-            key[edge] = k + p
-        self.nnz_s = k + len(fill)
-        t = np.array([(e1, mi, e2, key[sk]) for e1, mi, e2, sk in triples], int)
-        self.s_a1, self.s_minv, self.s_a2, self.s_target = t.T
+        levels, _, neighbours = _elimination_levels(k, edges)
+        # The active entries of S (diagonal and edges among the nodes not yet
+        # eliminated, `(a, b)` with `a <= b`) are stored compactly level by level,
+        # and the active nodes too: every step is a gather, none a scatter (batched
+        # scatters are slow on CPU).
+        keys = [(i, i) for i in range(k)] + sorted(edges)
+        self.s_keys = keys
+        t = np.array([(e1, mi, e2) for e1, mi, e2, _ in triples], int).reshape(-1, 3)
+        self.s_a1, self.s_minv, self.s_a2 = t.T
+        position = {key: q for q, key in enumerate(keys)}
+        self.s_sum = _sum_index(
+            [position[sk] for *_, sk in triples], len(keys), len(triples)
+        )
+        nodes = list(range(k))
         self.levels = []
         for level, nbrs in zip(levels, neighbours, strict=True):
-            # Column entries (p, i) of this level: the pivot's local index and the
-            # position of S[p, i]; the Schur updates S[a, b] -= S[a, p] S[b, p] / d_p
-            # over pairs of neighbours a <= b of each pivot.
+            position = {key: q for q, key in enumerate(keys)}
+            node_position = {v: q for q, v in enumerate(nodes)}
+            pivots = set(level)
+            next_nodes = [v for v in nodes if v not in pivots]
+            next_position = {v: q for q, v in enumerate(next_nodes)}
+            # Column entries S[p, i] of this level and the Schur updates
+            # S[a, b] -= S[a, p] S[b, p] / d_p over neighbours b <= a of each pivot.
             col_pivot, col_entry, col_row = [], [], []
-            upd_a, upd_b, upd_target = [], [], []
+            upd_a, upd_b = [], []
+            updates: dict[tuple[int, int], list[int]] = {}
+            num_updates = 0
             for q, (p, nb) in enumerate(zip(level, nbrs, strict=True)):
                 start = len(col_entry)
                 for i in nb:
                     col_pivot.append(q)
-                    col_entry.append(key[(min(p, i), max(p, i))])
-                    col_row.append(i)
+                    col_entry.append(position[(min(p, i), max(p, i))])
+                    col_row.append(next_position[i])
                 for x, a in enumerate(nb):
                     for y, b in enumerate(nb[: x + 1]):
+                        updates.setdefault((b, a), []).append(num_updates)
                         upd_a.append(start + x)
                         upd_b.append(start + y)
-                        upd_target.append(key[(b, a)])
+                        num_updates += 1
+            next_keys = [
+                key for key in keys if key[0] not in pivots and key[1] not in pivots
+            ]
+            next_keys += sorted(set(updates) - set(next_keys))
+            by_pivot = [[] for _ in level]
+            for e, q in enumerate(col_pivot):
+                by_pivot[q].append(e)
             self.levels.append(
-                tuple(
-                    np.asarray(v, int)
-                    for v in (
-                        level,
-                        col_pivot,
-                        col_entry,
-                        col_row,
-                        upd_a,
-                        upd_b,
-                        upd_target,
-                    )
+                _Level(
+                    pivots=np.array([node_position[p] for p in level], int),
+                    diag=np.array([position[(p, p)] for p in level], int),
+                    col_pivot=np.asarray(col_pivot, int),
+                    col_entry=np.asarray(col_entry, int),
+                    col_row=np.asarray(col_row, int),
+                    upd_a=np.asarray(upd_a, int),
+                    upd_b=np.asarray(upd_b, int),
+                    keep=np.array(
+                        [position.get(key, len(keys)) for key in next_keys], int
+                    ),
+                    update_sum=_pad(
+                        [updates.get(key, []) for key in next_keys], num_updates
+                    ),
+                    keep_nodes=np.array([node_position[v] for v in next_nodes], int),
+                    row_sum=_sum_index(col_row, len(next_nodes), len(col_row)),
+                    pivot_sum=_pad(by_pivot, len(col_row)),
+                    merge=_merge(level, next_nodes, nodes),
                 )
             )
+            keys, nodes = next_keys, next_nodes
+
+
+class _Level(NamedTuple):
+    """One level of independent pivots (positions are in the level's compact
+    storage of the active entries of `S` and of the active nodes)."""
+
+    pivots: np.ndarray  # the pivots among the active nodes
+    diag: np.ndarray  # their diagonal entries
+    col_pivot: np.ndarray  # per column entry S[p, i]: the pivot's index in the level
+    col_entry: np.ndarray  # ... its position
+    col_row: np.ndarray  # ... i among the next level's nodes
+    upd_a: np.ndarray  # per Schur update: the column entries S[a, p], S[b, p]
+    upd_b: np.ndarray
+    keep: np.ndarray  # per next entry: its position now (or the zero slot: fill)
+    update_sum: np.ndarray  # per next entry: its updates (padded)
+    keep_nodes: np.ndarray  # per next node: its position now
+    row_sum: np.ndarray  # per next node: the column entries in its row (padded)
+    pivot_sum: np.ndarray  # per pivot: its column entries (padded)
+    merge: np.ndarray  # per active node: its index in [pivots, next nodes]
+
+
+def _merge(level, next_nodes, nodes):
+    where = {p: q for q, p in enumerate(level)}
+    where.update({v: len(level) + q for q, v in enumerate(next_nodes)})
+    return np.array([where[v] for v in nodes], int)
+
+
+def _pad(lists, pad):
+    """A `(len(lists), width)` index array of the lists, padded with `pad`."""
+    width = max([len(x) for x in lists] + [1])
+    out = np.full((len(lists), width), pad, int)
+    for q, x in enumerate(lists):
+        out[q, : len(x)] = x
+    return out
+
+
+def _sum_index(targets, size, pad):
+    """For sources with the given `targets` (in `range(size)`): per target, its
+    sources, padded with `pad` (see `_gather_sum`)."""
+    lists = [[] for _ in range(size)]
+    for e, t in enumerate(targets):
+        lists[int(t)].append(e)
+    return _pad(lists, pad)
+
+
+def _gather_sum(values, index):
+    """`out[t] = sum(values[index[t]])`, with the padding index `len(values)` read
+    as zero: a segment sum written as a gather."""
+    values = jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
+    if index.shape[1] == 1:
+        return values[index[:, 0]]
+    return jnp.sum(values[index], axis=1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -253,39 +339,46 @@ def _apply_blocks(plan, minv, v):
     return jnp.concatenate(out)[plan.block_inverse]
 
 
-def _spmv(values, rows, cols, v, size):
-    """`B v` for the sparse `B` with `values` at `(rows, cols)` and `size` rows."""
-    return jnp.zeros((size,), v.dtype).at[rows].add(values * v[cols])
+def _spmv(values, cols, v, by_row):
+    """`B v` for the sparse `B` with `values` at columns `cols`, summed by row."""
+    return _gather_sum(values * v[cols], by_row)
 
 
 def _schur_solve(plan, s_values, g, threshold):
     """Solve `S y = g` by `L D L^T` in the plan's levels of independent pivots; `bad`:
     a pivot at or below `threshold` (redundant constraints, or an indefinite `S`)."""
     factors, bad = [], jnp.array(False)
-    for level, col_pivot, col_entry, _, upd_a, upd_b, upd_target in plan.levels:
-        d = s_values[level]
+    for level in plan.levels:
+        d = s_values[level.diag]
         small = d <= threshold
         bad = bad | jnp.any(small)
         d = jnp.where(small, 1.0, d)
-        column = s_values[col_entry]
-        lower = column / d[col_pivot]
-        if upd_target.size:
-            s_values = s_values.at[upd_target].add(-column[upd_a] * lower[upd_b])
+        column = s_values[level.col_entry]
+        lower = column / d[level.col_pivot]
+        kept = jnp.concatenate([s_values, jnp.zeros((1,), s_values.dtype)])
+        s_values = kept[level.keep]
+        if level.upd_a.size:
+            delta = column[level.upd_a] * lower[level.upd_b]
+            s_values = s_values - _gather_sum(delta, level.update_sum)
         factors.append((d, lower))
-    y = g
-    for (level, col_pivot, _, col_row, *_), (_, lower) in zip(
-        plan.levels, factors, strict=True
+    # Forward substitution, the active nodes shrinking level by level.
+    y, pivot_values = g, []
+    for level, (_, lower) in zip(plan.levels, factors, strict=True):
+        y_pivots = y[level.pivots]
+        pivot_values.append(y_pivots)
+        y = y[level.keep_nodes]
+        if level.col_row.size:
+            y = y - _gather_sum(lower * y_pivots[level.col_pivot], level.row_sum)
+    # Back substitution, the active nodes growing back.
+    x = y
+    for level, (d, lower), y_pivots in reversed(
+        list(zip(plan.levels, factors, pivot_values, strict=True))
     ):
-        if col_row.size:
-            y = y.at[col_row].add(-lower * y[level][col_pivot])
-    for (level, col_pivot, _, col_row, *_), (d, lower) in reversed(
-        list(zip(plan.levels, factors, strict=True))
-    ):
-        x = y[level] / d
-        if col_row.size:
-            x = x - jnp.zeros_like(x).at[col_pivot].add(lower * y[col_row])
-        y = y.at[level].set(x)
-    return y, bad
+        x_pivots = y_pivots / d
+        if level.col_row.size:
+            x_pivots = x_pivots - _gather_sum(lower * x[level.col_row], level.pivot_sum)
+        x = jnp.concatenate([x_pivots, x])[level.merge]
+    return x, bad
 
 
 class SparseSchur(AbstractSaddlePointSolver):
@@ -346,7 +439,6 @@ class SparseSchur(AbstractSaddlePointSolver):
         n, k = plan.n, plan.k
         dtype = jnp.result_type(mass.values, jac.values, rhs, bias)
         eps = jnp.finfo(dtype).eps
-        m_rows, m_cols = np.asarray(mass.rows, int), np.asarray(mass.cols, int)
         m_values, a_values = mass.values, jac.values
         max_m = jnp.max(jnp.abs(m_values))
         minv, bad = _factor_mass(plan, m_values, 10 * n * eps * max_m)
@@ -354,35 +446,33 @@ class SparseSchur(AbstractSaddlePointSolver):
         if k == 0:
             x, lam, at_lam = u, jnp.zeros((0,), dtype), jnp.zeros_like(u)
         else:
-            a_rows, a_cols = plan.a_rows, plan.a_cols
-            s_values = (
-                jnp.zeros((plan.nnz_s,), dtype)
-                .at[plan.s_target]
-                .add(a_values[plan.s_a1] * minv[plan.s_minv] * a_values[plan.s_a2])
+            s_values = _gather_sum(
+                a_values[plan.s_a1] * minv[plan.s_minv] * a_values[plan.s_a2],
+                plan.s_sum,
             )
-            g = -bias - _spmv(a_values, a_rows, a_cols, u, k)
+            g = -bias - _spmv(a_values, plan.a_cols, u, plan.a_by_row)
             threshold = 10 * k * eps * jnp.max(jnp.abs(s_values))
             lam, bad_s = _schur_solve(plan, s_values, g, threshold)
             bad = bad | bad_s
-            at_lam = _spmv(a_values, a_cols, a_rows, lam, n)
+            at_lam = _spmv(a_values, plan.a_rows, lam, plan.a_by_col)
             x = u + _apply_blocks(plan, minv, at_lam)
         # The whole KKT system, to round-off (see the class docstring).
         tol = 100 * (n + k) * eps
         abs_m = jnp.abs(m_values)
-        residual = _spmv(m_values, m_rows, m_cols, x, n) - at_lam - rhs
-        size = _spmv(abs_m, m_rows, m_cols, jnp.abs(x), n) + jnp.abs(rhs)
+        residual = _spmv(m_values, plan.m_cols, x, plan.m_rows) - at_lam - rhs
+        size = _spmv(abs_m, plan.m_cols, jnp.abs(x), plan.m_rows) + jnp.abs(rhs)
         if k > 0:
             abs_a = jnp.abs(a_values)
-            size = size + _spmv(abs_a, a_cols, a_rows, jnp.abs(lam), n)
+            size = size + _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col)
         ok = jnp.max(jnp.abs(residual)) <= tol * jnp.max(size)
         if k > 0:
-            residual = _spmv(a_values, a_rows, a_cols, x, k) + bias
+            residual = _spmv(a_values, plan.a_cols, x, plan.a_by_row) + bias
             x_size = _apply_blocks(
                 plan,
                 jnp.abs(minv),
-                jnp.abs(rhs) + _spmv(abs_a, a_cols, a_rows, jnp.abs(lam), n),
+                jnp.abs(rhs) + _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col),
             )
-            size = _spmv(abs_a, a_rows, a_cols, x_size, k) + jnp.abs(bias)
+            size = _spmv(abs_a, plan.a_cols, x_size, plan.a_by_row) + jnp.abs(bias)
             ok = ok & (jnp.max(jnp.abs(residual)) <= tol * jnp.max(size))
         finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(lam))
         singular = bad | jnp.invert(ok) | jnp.invert(finite)
