@@ -42,7 +42,12 @@ def problem(num_links, batch):
         q = q + 0.01 * jax.random.normal(k1, q.shape)
         mass = jnp.eye(2 * num_links) * args["m"]
         jac = jax.jacfwd(chain.rods)(q, 0.0, args)
-        return mass, jac, jax.random.normal(k2, q.shape), jax.random.normal(k3, (num_links,))
+        return (
+            mass,
+            jac,
+            jax.random.normal(k2, q.shape),
+            jax.random.normal(k3, (num_links,)),
+        )
 
     return jax.vmap(one)(keys)
 
