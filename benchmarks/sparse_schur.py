@@ -124,8 +124,8 @@ def main(sizes):
         mass, jac, rhs, bias = problem(num_links, BATCH)
         pm = np.asarray(mass[0]) != 0
         pa = np.asarray(jac[0]) != 0
-        ms = jax.vmap(lambda m: SparseMatrix.from_dense(m, pm))(mass)
-        js = jax.vmap(lambda a: SparseMatrix.from_dense(a, pa))(jac)
+        ms = jax.vmap(SparseMatrix.from_dense, in_axes=(0, None))(mass, pm)
+        js = jax.vmap(SparseMatrix.from_dense, in_axes=(0, None))(jac, pa)
         one = lambda t: jax.tree.map(lambda v: v[0], t)  # noqa: E731
         sparse = lambda m, a, f, b: SparseSchur().solve(m, a, f, b)  # noqa: E731
         dense = lambda m, a, f, b: FullKKTLU(unroll_max=0).solve(m, a, f, b)  # noqa: E731
@@ -142,21 +142,22 @@ def main(sizes):
             print(
                 f"N={num_links:5d} {name:6s} single {single[0] * 1e6:10.1f} us "
                 f"compile {single[1]:6.2f} s temp {single[2] / 1e6:9.3f} MB | "
-                f"vmap{BATCH} {batched[0] * 1e6:10.1f} us/state={batched[0] / BATCH * 1e6:8.2f} "
+                f"vmap{BATCH} {batched[0] / BATCH * 1e6:8.2f} us/state "
                 f"compile {batched[1]:6.2f} s temp {batched[2] / 1e6:9.3f} MB",
                 flush=True,
             )
     for name in ("sparse", "scan", "dense"):
-        sub = [r for r in rows if r[1] == name and np.isfinite(r[2])]
-        if len(sub) >= 2:
-            sizes_ = np.log([r[0] for r in sub])
-            fit = lambda col: np.polyfit(sizes_, np.log([r[col] for r in sub]), 1)[0]  # noqa: E731
-            print(f"{name}: exponent single {fit(2):.2f}, compile {fit(3):.2f}")
-        sub = [r for r in rows if r[1] == name and np.isfinite(r[5])]
-        if len(sub) >= 2:
-            sizes_ = np.log([r[0] for r in sub])
-            fit = lambda col: np.polyfit(sizes_, np.log([r[col] for r in sub]), 1)[0]  # noqa: E731
-            print(f"{name}: exponent vmap {fit(5):.2f}, temp {fit(7):.2f}")
+        for label, cols in (("single", (2, 3, 4)), ("vmap", (5, 6, 7))):
+            sub = [r for r in rows if r[1] == name and np.isfinite(r[cols[0]])]
+            if len(sub) >= 2:
+                x = np.log([r[0] for r in sub])
+                slopes = [
+                    np.polyfit(x, np.log([r[c] for r in sub]), 1)[0] for c in cols
+                ]
+                print(
+                    f"{name} {label}: growth exponents time {slopes[0]:.2f}, "
+                    f"compile {slopes[1]:.2f}, temp {slopes[2]:.2f}"
+                )
 
 
 if __name__ == "__main__":

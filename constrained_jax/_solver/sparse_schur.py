@@ -5,8 +5,9 @@ and a sparse constraint Jacobian, solved by the range-space method with a sparse
 
 Everything that depends on the sparsity patterns (the blocks of `M`, the pattern of
 `S = A M^-1 A^T`, the elimination order, its fill and its levels) is planned once, at
-trace time, in numpy; the numeric phase is a few vectorized gathers and scatter-adds
-per level, so the program grows like the number of levels, not like the size.
+trace time, in numpy; the numeric phase is a few vectorized gathers per level (sums
+over scattered entries are written as padded gathers: batched scatters are slow on
+CPU), so the program grows like the number of levels, not like the size.
 """
 
 import functools
@@ -393,14 +394,14 @@ class SparseSchur(AbstractSaddlePointSolver):
     elimination order of `S` in levels of independent pivots (multiple minimum
     degree: each level eliminates a maximal independent set of nodes of degree at
     most `max(2, min degree)`). On a chain, whose `S` is tridiagonal, this is odd-even
-    (cyclic) reduction: `log2(k)` levels, no fill beyond one band. At run time: the
+    (cyclic) reduction: `log2(k)` levels and `O(k)` fill. At run time: the
     blocks of `M` are factored by `L D L^T` vectorized over the blocks of equal size,
     `S` is assembled in `O(nnz)`, and each level of its `L D L^T` is a few vectorized
-    gathers and scatter-adds. Run time and memory are `O(nnz)` of the filled `S`
-    (linear in the number of links for chains and trees); the program grows with the
-    number of levels, not with the size. The elimination is Gaussian elimination
-    without pivoting on the symmetric permutation of positive definite matrices, so
-    it is backward stable.
+    gathers on the entries still active. Run time and memory are `O(nnz)` of the
+    filled `S` (linear in the number of links for chains and trees); the program
+    grows with the number of levels, not with the size. The elimination is Gaussian
+    elimination without pivoting on a symmetric permutation of positive definite
+    matrices, so it is backward stable.
 
     **What it needs.** `M` block-diagonal (after a symmetric permutation) with a
     structurally nonzero diagonal and positive definite blocks, and `A` of full row
