@@ -33,23 +33,30 @@ BATCH = 1000
 
 
 def problem(num_links, batch):
+    """`batch` perturbed states: the dense M and A of the first (for the patterns and
+    the dense solver) and the batched values of the sparse ones (built one state at
+    a time: a batch of dense matrices would not fit at large N)."""
     args = chain.default_args()
     keys = jax.random.split(jax.random.key(0), batch)
 
     def one(key):
         k1, k2, k3 = jax.random.split(key, 3)
-        q, qd = chain.state(num_links, 0.3, args, 0.7)
+        q, _ = chain.state(num_links, 0.3, args, 0.7)
         q = q + 0.01 * jax.random.normal(k1, q.shape)
         mass = jnp.eye(2 * num_links) * args["m"]
         jac = jax.jacfwd(chain.rods)(q, 0.0, args)
-        return (
-            mass,
-            jac,
-            jax.random.normal(k2, q.shape),
-            jax.random.normal(k3, (num_links,)),
-        )
+        rhs, bias = jax.random.normal(k2, q.shape), jax.random.normal(k3, (num_links,))
+        return mass, jac, rhs, bias
 
-    return jax.vmap(one)(keys)
+    mass, jac, _, _ = one(keys[0])
+    pm, pa = np.asarray(mass) != 0, np.asarray(jac) != 0
+
+    def values(key):
+        mass, jac, rhs, bias = one(key)
+        m, a = SparseMatrix.from_dense(mass, pm), SparseMatrix.from_dense(jac, pa)
+        return m, a, rhs, bias
+
+    return mass, jac, jax.lax.map(values, keys)
 
 
 def thomas(mass, jac, rhs, bias):
@@ -121,17 +128,16 @@ def measure(fn, *args):
 def main(sizes):
     rows = []
     for num_links in sizes:
-        mass, jac, rhs, bias = problem(num_links, BATCH)
-        pm = np.asarray(mass[0]) != 0
-        pa = np.asarray(jac[0]) != 0
-        ms = jax.vmap(SparseMatrix.from_dense, in_axes=(0, None))(mass, pm)
-        js = jax.vmap(SparseMatrix.from_dense, in_axes=(0, None))(jac, pa)
+        mass, jac, (ms, js, rhs, bias) = problem(num_links, BATCH)
         one = lambda t: jax.tree.map(lambda v: v[0], t)  # noqa: E731
         sparse = lambda m, a, f, b: SparseSchur().solve(m, a, f, b)  # noqa: E731
         dense = lambda m, a, f, b: FullKKTLU(unroll_max=0).solve(m, a, f, b)  # noqa: E731
         variants = {"sparse": (sparse, ms, js), "scan": (thomas, ms, js)}
-        if num_links <= 1024:
-            variants["dense"] = (dense, mass, jac)
+        if num_links <= 64:
+            todense = jax.vmap(lambda x: x.todense())  # noqa: E731
+            variants["dense"] = (dense, todense(ms), todense(js))
+        elif num_links <= 1024:
+            variants["dense"] = (dense, mass[None], jac[None])
         for name, (fn, m, a) in variants.items():
             single = measure(fn, one(m), one(a), rhs[0], bias[0])
             if name != "dense" or num_links <= 64:
