@@ -66,6 +66,7 @@ from ._solver import (
     MINRES as MINRES,
     Newton as Newton,
     RangeSpaceLDL as RangeSpaceLDL,
+    SparseSchur as SparseSchur,
 )
 from ._stabilization import (
     AbstractStabilization as AbstractStabilization,

@@ -13,3 +13,4 @@ from .saddle_point import (
     FullKKTLU as FullKKTLU,
     RangeSpaceLDL as RangeSpaceLDL,
 )
+from .sparse_schur import SparseSchur as SparseSchur
