@@ -29,7 +29,7 @@ from ._kkt import (
 )
 from ._misc import all_finite, as_traced_args, inexact_asarray
 from ._results import RESULTS
-from ._solver.dense_lu import DenseLU, dense_factor, dense_solve
+from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.minres import MINRES
 from ._solver.newton import AbstractKKTSolver, Newton
 
@@ -64,9 +64,7 @@ def default_solver(n: int, k: int, dtype, dense_max: int = DENSE_MAX) -> Newton:
     if n + k <= dense_max:
         return Newton()
     rtol = max(1e-12, 1000 * float(jnp.finfo(dtype).eps))
-    return Newton(
-        linear_solver=MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, n + k))
-    )
+    return Newton(linear_solver=MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, n + k)))
 
 
 def _warn_if_dense_and_large(solver, n: int, k: int) -> None:
