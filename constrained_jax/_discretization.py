@@ -228,6 +228,11 @@ def _vector(array: np.ndarray) -> Float[Array, " N"]:
     return jnp.asarray(array, default_float_dtype())
 
 
+def _matmul(a: Array, b: Array) -> Array:
+    """A product of tables at full precision (never TF32 or bfloat16 passes)."""
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
 def _table_key(singular) -> str:
     """The key of the tables for the quadrature clustered as in `singular`."""
     return "quadrature_" + "".join("1" if flag else "0" for flag in singular) + "_"
@@ -334,7 +339,7 @@ class Chebyshev(AbstractDiscretization):
         t = self.reference_nodes()
         bw = self._reference_weights()
         p = interpolation_matrix(t, bw, tq)
-        return tq, wq, p, p @ differentiation_matrix(t, bw)
+        return tq, wq, p, _matmul(p, differentiation_matrix(t, bw))
 
     def _interior_matrix(self):
         """Values at the (unclustered) Gauss points of the Lagrange basis of the
@@ -375,7 +380,7 @@ class Chebyshev(AbstractDiscretization):
         xl, xr = interval
         _, wq, p, _ = self._matrices()
         # Interpolatory (Clenshaw-Curtis) weights: integrals of the Lagrange basis.
-        cc = p.T @ _vector(wq)
+        cc = _matmul(p.T, _vector(wq))
         return (xr - xl) / 2 * jnp.asarray(cc, xl.dtype)
 
     def pointwise_constraint(self, constraint, values, interval):
@@ -481,6 +486,8 @@ Chebyshev.__init__.__doc__ = """**Arguments:**
 - `num_nodes`: the number of nodes `N >= 3`, both ends included (the polynomial has
     degree `N - 1`; there are `N - 2` unknown values per function).
 - `num_quadrature`: Gauss-Legendre points for the integrals; default `ceil(3N/2)`.
+- `tables`: leave it `None`; [`constrained_jax.solve_functional`][] fills it (by
+    `tabulate`) with the interpolation matrices, computed once per solve at run time.
 """
 
 
