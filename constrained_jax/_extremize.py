@@ -39,12 +39,14 @@ from ._solver.newton import AbstractKKTSolver, Newton
 # constraints, 5 Newton steps; CPU time after compilation, medians of 5, one
 # process, 2-core CPU, float64): dense `DenseLU` / MINRES 2.3 / 17 ms at
 # n + k = 113, 12 / 12 ms at 133, 86 / 8 ms at 153, 0.88 s / 16 ms at 1,003,
-# 1.7 s / 44 ms at 2,003 (53 s and 6.4 GB against 70 ms at 10,003). The crossover is
-# near 130; the switch sits above it (at 256) because MINRES is unpreconditioned
-# and needs more iterations on worse-conditioned problems, where dense LU does not.
+# 1.7 s / 44 ms at 2,003 (issue 12: 53 s and 6.4 GB against 70 ms at 10,003). The
+# crossover is near 130; the switch sits above it (at 256) because MINRES is
+# unpreconditioned and needs more iterations on worse-conditioned problems, where
+# dense LU does not. Results agree to round-off (x to 5e-15, multipliers to 2e-14,
+# the same kind) wherever both run.
 DENSE_MAX = 256
 # An explicitly dense solver above this size is warned about (the KKT matrix alone
-# needs `8 (n + k)^2` bytes: 134 MB here, 6.4 GB at 28,000).
+# takes `8 (n + k)^2` bytes, 134 MB at 4,096, and XLA's scratch several times that).
 DENSE_WARN = 4096
 
 
