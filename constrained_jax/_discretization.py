@@ -19,6 +19,7 @@ discrete functional infinite.
 """
 
 import abc
+import functools as ft
 import math
 
 import equinox as eqx
@@ -28,6 +29,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._misc import default_float_dtype
 from ._solver.block_tridiagonal import BorderedBlockTridiagonal
 from ._solver.equilibrated_lu import EquilibratedDenseLU
 
@@ -144,6 +146,20 @@ class AbstractDiscretization(eqx.Module):
         t = jnp.asarray(self.reference_nodes(), xl.dtype)
         return xl + (xr - xl) * (t + 1) / 2
 
+    def tabulate(
+        self, singular_ends: tuple[tuple[bool, bool], ...] = ((False, False),)
+    ) -> "AbstractDiscretization":
+        """A copy that holds, as JAX arrays, the tables (interpolation and
+        differentiation matrices) its methods would otherwise build at every call;
+        `singular_ends` lists the `singular` flags `integrate` will be called with.
+
+        [`constrained_jax.solve_functional`][] calls it once at the start of the
+        compiled solve: the tables are then computed once per solve, at run time, and
+        reach every evaluation of the functional as arguments, never as constants
+        baked into the program. By default there is nothing to tabulate."""
+        del singular_ends
+        return self
+
 
 _END_POINTS = 8  # Gauss points on an end element flagged singular (PiecewiseLinear).
 
@@ -180,6 +196,17 @@ def _check_num_nodes(cls_name: str, num_nodes, minimum: int):
         )
 
 
+@ft.lru_cache(maxsize=64)
+def _gauss_legendre(num: int, singular: tuple[bool, bool]):
+    """Gauss-Legendre points and weights on `[-1, 1]` (NumPy, read-only, cached:
+    NumPy finds them by an eigenvalue problem of size `num`), clustered towards the
+    flagged ends (`_cluster`)."""
+    tq, wq = _cluster(*np.polynomial.legendre.leggauss(num), singular)
+    tq.flags.writeable = False
+    wq.flags.writeable = False
+    return tq, wq
+
+
 def barycentric_weights(nodes: np.ndarray) -> np.ndarray:
     """`w_j = 1 / prod_{k != j} (x_j - x_k)`, rescaled to max 1 (float64, NumPy)."""
     diff = nodes[:, None] - nodes[None, :]
@@ -190,28 +217,47 @@ def barycentric_weights(nodes: np.ndarray) -> np.ndarray:
     return sign * np.exp(log_w - log_w.max())
 
 
-def differentiation_matrix(nodes: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """`D_ij = l_j'(x_i)` for the Lagrange basis through `nodes` (NumPy)."""
-    diff = nodes[:, None] - nodes[None, :]
-    np.fill_diagonal(diff, 1.0)
-    d = (weights[None, :] / weights[:, None]) / diff
-    np.fill_diagonal(d, 0.0)
-    np.fill_diagonal(d, -d.sum(axis=1))
-    return d
+# The matrices below are built with jnp operations from the nodes (vectors), inside
+# the traced program: an `(M, N)` matrix is then computed at run time, not embedded
+# in the program as a constant (`jnp.asarray` of a NumPy matrix under `jit` is one).
+# They are built in the default float dtype (float64 with `jax_enable_x64`) and
+# cast to the dtype of the values where used.
+
+
+def _vector(array: np.ndarray) -> Float[Array, " N"]:
+    return jnp.asarray(array, default_float_dtype())
+
+
+def _matmul(a: Array, b: Array) -> Array:
+    """A product of tables at full precision (never TF32 or bfloat16 passes)."""
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
+def _table_key(singular) -> str:
+    """The key of the tables for the quadrature clustered as in `singular`."""
+    return "quadrature_" + "".join("1" if flag else "0" for flag in singular) + "_"
+
+
+def differentiation_matrix(nodes: np.ndarray, weights: np.ndarray) -> Array:
+    """`D_ij = l_j'(x_i)` for the Lagrange basis through `nodes`."""
+    nodes, weights = _vector(nodes), _vector(weights)
+    diagonal = jnp.eye(nodes.shape[0], dtype=bool)
+    diff = jnp.where(diagonal, 1.0, nodes[:, None] - nodes[None, :])
+    d = jnp.where(diagonal, 0.0, (weights[None, :] / weights[:, None]) / diff)
+    return jnp.where(diagonal, -jnp.sum(d, axis=1, keepdims=True), d)
 
 
 def interpolation_matrix(
     nodes: np.ndarray, weights: np.ndarray, points: np.ndarray
-) -> np.ndarray:
+) -> Array:
     """`P_qj = l_j(t_q)`: values at `points` of the Lagrange basis (barycentric)."""
+    nodes, weights, points = _vector(nodes), _vector(weights), _vector(points)
     diff = points[:, None] - nodes[None, :]
     exact = diff == 0
-    diff = np.where(exact, 1.0, diff)
-    terms = weights[None, :] / diff
-    p = terms / terms.sum(axis=1, keepdims=True)
-    rows = exact.any(axis=1)
-    p[rows] = exact[rows].astype(float)
-    return p
+    terms = weights[None, :] / jnp.where(exact, 1.0, diff)
+    p = terms / jnp.sum(terms, axis=1, keepdims=True)
+    hit = jnp.any(exact, axis=1, keepdims=True)
+    return jnp.where(hit, exact.astype(p.dtype), p)
 
 
 def _barycentric(nodes, weights, values, x):
@@ -250,6 +296,7 @@ class Chebyshev(AbstractDiscretization):
 
     num_nodes: int = eqx.field(static=True)
     num_quadrature: int | None = eqx.field(static=True, default=None)
+    tables: dict[str, Array] | None = eqx.field(default=None, repr=False)
 
     def __check_init__(self):
         _check_num_nodes("Chebyshev", self.num_nodes, 3)
@@ -282,14 +329,41 @@ class Chebyshev(AbstractDiscretization):
         return w
 
     def _matrices(self, singular=(False, False)):
-        """Gauss points, weights, and the value / derivative matrices (reference)."""
+        """Gauss points, weights (NumPy), and the value / derivative matrices at
+        them (JAX arrays: from `tables` when tabulated, else built here)."""
+        singular = tuple(bool(flag) for flag in singular)
+        tq, wq = _gauss_legendre(self._num_quadrature(), singular)
+        key = _table_key(singular)
+        if self.tables is not None and key + "p" in self.tables:
+            return tq, wq, self.tables[key + "p"], self.tables[key + "pd"]
         t = self.reference_nodes()
         bw = self._reference_weights()
-        tq, wq = np.polynomial.legendre.leggauss(self._num_quadrature())
-        tq, wq = _cluster(tq, wq, singular)
-        d = differentiation_matrix(t, bw)
         p = interpolation_matrix(t, bw, tq)
-        return tq, wq, p, p @ d
+        return tq, wq, p, _matmul(p, differentiation_matrix(t, bw))
+
+    def _interior_matrix(self):
+        """Values at the (unclustered) Gauss points of the Lagrange basis of the
+        interior nodes, for the weak form of pointwise constraints."""
+        if self.tables is not None and "interior" in self.tables:
+            return self.tables["interior"]
+        tq, _ = _gauss_legendre(self._num_quadrature(), (False, False))
+        t_int = self.reference_nodes()[1:-1]
+        return interpolation_matrix(t_int, barycentric_weights(t_int), tq)
+
+    def tabulate(self, singular_ends=((False, False),)) -> "Chebyshev":
+        """A copy holding the matrices at the Gauss points, clustered as in each of
+        `singular_ends`, and that of the interior nodes (see
+        `AbstractDiscretization.tabulate`)."""
+        base = eqx.tree_at(lambda d: d.tables, self, None, is_leaf=lambda x: x is None)
+        tables = {"interior": base._interior_matrix()}
+        flag_sets = {tuple(bool(f) for f in flags) for flags in singular_ends}
+        for flags in sorted(flag_sets | {(False, False)}):
+            _, _, p, pd = base._matrices(flags)
+            key = _table_key(flags)
+            tables[key + "p"], tables[key + "pd"] = p, pd
+        return eqx.tree_at(
+            lambda d: d.tables, self, tables, is_leaf=lambda x: x is None
+        )
 
     def integrate(self, integrand, values, interval, singular=(False, False)):
         xl, xr = interval
@@ -306,7 +380,7 @@ class Chebyshev(AbstractDiscretization):
         xl, xr = interval
         _, wq, p, _ = self._matrices()
         # Interpolatory (Clenshaw-Curtis) weights: integrals of the Lagrange basis.
-        cc = p.T @ wq
+        cc = _matmul(p.T, _vector(wq))
         return (xr - xl) / 2 * jnp.asarray(cc, xl.dtype)
 
     def pointwise_constraint(self, constraint, values, interval):
@@ -320,8 +394,7 @@ class Chebyshev(AbstractDiscretization):
         xl, xr = interval
         dtype = values.dtype
         tq, wq, p, _ = self._matrices()
-        t_int = self.reference_nodes()[1:-1]
-        p_int = interpolation_matrix(t_int, barycentric_weights(t_int), tq)
+        p_int = self._interior_matrix()
         half = (xr - xl) / 2
         xq = xl + half * (jnp.asarray(tq, dtype) + 1)
         yq = jnp.asarray(p, dtype) @ values
@@ -348,19 +421,17 @@ class Chebyshev(AbstractDiscretization):
     def make_linear_solver(self, num_components, num_holonomic, num_integral):
         return EquilibratedDenseLU()
 
-    def _coefficient_matrix(self) -> np.ndarray:
+    def _coefficient_matrix(self) -> Array:
         """`C` with `c = C @ values`: the Chebyshev coefficients of the interpolant
         through the Chebyshev-Gauss-Lobatto nodes (a discrete cosine transform)."""
         n = self.num_nodes - 1
-        j = np.arange(n + 1)
         # The nodes are ascending, t_j = cos(pi (n - j) / n).
-        c = np.cos(np.pi * j[:, None] * (n - j)[None, :] / n)
-        w = np.ones(n + 1)
-        w[0] = w[-1] = 0.5
+        # (Built with jnp, like the matrices above: no (N, N) constant.)
+        j = jnp.arange(n + 1, dtype=default_float_dtype())
+        c = jnp.cos(jnp.pi * j[:, None] * (n - j)[None, :] / n)
+        w = jnp.ones(n + 1, j.dtype).at[0].set(0.5).at[-1].set(0.5)
         c = (2.0 / n) * c * w[None, :]
-        c[0] /= 2
-        c[-1] /= 2
-        return c
+        return c.at[0].divide(2).at[-1].divide(2)
 
     def error_estimate(self, values, interval):
         """From the decay of the Chebyshev coefficients `c_k` of the interpolant
@@ -415,6 +486,8 @@ Chebyshev.__init__.__doc__ = """**Arguments:**
 - `num_nodes`: the number of nodes `N >= 3`, both ends included (the polynomial has
     degree `N - 1`; there are `N - 2` unknown values per function).
 - `num_quadrature`: Gauss-Legendre points for the integrals; default `ceil(3N/2)`.
+- `tables`: leave it `None`; [`constrained_jax.solve_functional`][] fills it (by
+    `tabulate`) with the interpolation matrices, computed once per solve at run time.
 """
 
 
@@ -448,6 +521,13 @@ class PiecewiseLinear(AbstractDiscretization):
 
     def reference_nodes(self) -> np.ndarray:
         return np.linspace(-1.0, 1.0, self.num_nodes)
+
+    def nodes(self, interval):
+        # `np.linspace`'s arithmetic, from iota: no (N,) constant in the program.
+        xl, xr = interval
+        i = jnp.arange(self.num_nodes, dtype=default_float_dtype())
+        t = (i * (2.0 / (self.num_nodes - 1)) + -1.0).at[-1].set(1.0)
+        return xl + (xr - xl) * (t.astype(xl.dtype) + 1) / 2
 
     def integrate(self, integrand, values, interval, singular=(False, False)):
         xl, xr = interval
@@ -754,6 +834,16 @@ class Graded(AbstractDiscretization):
     def make_linear_solver(self, num_components, num_holonomic, num_integral):
         return self.discretization.make_linear_solver(
             num_components, num_holonomic, num_integral
+        )
+
+    def tabulate(self, singular_ends=((False, False),)) -> "Graded":
+        # The base integrates with the graded ends flagged (see `integrate`).
+        flags = tuple(
+            (left or self.left > 1, right or self.right > 1)
+            for left, right in singular_ends
+        )
+        return eqx.tree_at(
+            lambda d: d.discretization, self, self.discretization.tabulate(flags)
         )
 
     def error_estimate(self, values, interval):

@@ -882,7 +882,9 @@ def _solve_functional(
         )
     check_kkt_solver(Newton() if solver is None else solver, max_steps)
 
-    problem = _Problem(functional, discretization)
+    # The discretization's matrices, computed once here at run time and passed to
+    # every evaluation of the functional (not constants in the program).
+    problem = _Problem(functional, discretization.tabulate())
     dtype = functional.boundary[0].dtype
     shape = functional.boundary[0].shape
     n = functional.num_components

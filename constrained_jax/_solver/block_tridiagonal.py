@@ -24,7 +24,6 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import lineax as lx
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .dense_lu import dense_factor, dense_solve, lu_factor_unrolled, lu_solve_unrolled
@@ -163,12 +162,13 @@ class BorderedBlockTridiagonal(lx.AbstractLinearSolver):
         nb, s, k = self.num_blocks, self.num_primal + self.num_dual, self.border
         dtype = structure.dtype
         # Probe vectors: colour (r, j) = position j of every block b = r (mod 3); then
-        # one unit vector per border unknown.
-        colour = np.zeros((3, s, nb, s))
-        for r in range(3):
-            for j in range(s):
-                colour[r, j, r::3, j] = 1.0
-        probes_blocks = jnp.asarray(colour.reshape(3 * s, nb, s), dtype)
+        # one unit vector per border unknown. (Built from iota, like the indices
+        # below: arrays of size num_blocks are not constants in the program.)
+        r, j, block, col = jnp.ix_(
+            jnp.arange(3), jnp.arange(s), jnp.arange(nb), jnp.arange(s)
+        )
+        colour = ((block % 3 == r) & (col == j)).astype(dtype)
+        probes_blocks = colour.reshape(3 * s, nb, s)
         probes = jax.vmap(lambda b: self._from_blocks(b, jnp.zeros((k,), dtype)))(
             probes_blocks
         )
@@ -180,7 +180,7 @@ class BorderedBlockTridiagonal(lx.AbstractLinearSolver):
         outputs = jax.vmap(operator.mv)(probes)  # (3s + k, size)
         out_blocks, out_border = jax.vmap(self._to_blocks)(outputs)
         tri = out_blocks[: 3 * s].reshape(3, s, nb, s)  # [r, col j, block i, row]
-        i = np.arange(nb)
+        i = jnp.arange(nb)
         # T[i, b][row, j] = tri[b % 3, j, i, row] for b in {i-1, i, i+1}.
         diag = jnp.transpose(tri[i % 3, :, i, :], (0, 2, 1))
         lower = jnp.transpose(tri[(i - 1) % 3, :, i, :], (0, 2, 1))
