@@ -13,6 +13,9 @@ from ._constraints import (
     Pfaffian as Pfaffian,
     Unilateral as Unilateral,
 )
+from ._compilation_cache import (
+    enable_compilation_cache as enable_compilation_cache,
+)
 from ._discretization import (
     AbstractDiscretization as AbstractDiscretization,
     Chebyshev as Chebyshev,
