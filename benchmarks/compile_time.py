@@ -31,10 +31,14 @@ import jax.numpy as jnp  # noqa: E402
 from _common import machine_info  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
-from constrained_jax.scenes import pendulum as pendulum_scene  # noqa: E402
-from constrained_jax.scenes import two_cylinders as cylinders_scene  # noqa: E402
-from constrained_jax.tour import pendulum as pendulum_tour  # noqa: E402
-from constrained_jax.tour import two_cylinders as cylinders_tour  # noqa: E402
+from constrained_jax.scenes import (  # noqa: E402
+    pendulum as pendulum_scene,
+    two_cylinders as cylinders_scene,
+)
+from constrained_jax.tour import (  # noqa: E402
+    pendulum as pendulum_tour,
+    two_cylinders as cylinders_tour,
+)
 
 
 RESULTS = Path(__file__).parent / "results" / "compile_time.json"
@@ -103,9 +107,8 @@ CASES = {
 
 def hlo_counts(text: str) -> dict:
     """Instructions, `while` loops and `conditional`s of an optimized HLO module."""
-    instructions = [
-        line for line in text.splitlines() if re.match(r"\s+(ROOT )?%?[\w.\-]+ = ", line)
-    ]
+    pattern = re.compile(r"\s+(ROOT )?%?[\w.\-]+ = ")
+    instructions = [line for line in text.splitlines() if pattern.match(line)]
     return {
         "hlo_instructions": len(instructions),
         "hlo_while": sum(" while(" in line for line in instructions),

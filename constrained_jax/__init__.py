@@ -7,14 +7,14 @@ Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-p
 import importlib.metadata
 
 from . import plot as plot, scenes as scenes
+from ._compilation_cache import (
+    enable_compilation_cache as enable_compilation_cache,
+)
 from ._constraints import (
     AbstractConstraint as AbstractConstraint,
     Holonomic as Holonomic,
     Pfaffian as Pfaffian,
     Unilateral as Unilateral,
-)
-from ._compilation_cache import (
-    enable_compilation_cache as enable_compilation_cache,
 )
 from ._discretization import (
     AbstractDiscretization as AbstractDiscretization,

@@ -66,6 +66,8 @@ def enable_compilation_cache(
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_enable_compilation_cache", True)
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_time_secs)
+    jax.config.update(
+        "jax_persistent_cache_min_compile_time_secs", min_compile_time_secs
+    )
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path

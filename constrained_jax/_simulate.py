@@ -462,11 +462,13 @@ class _WatchedSolver(AbstractForwardingSolver):
     part in the error estimate, so the steps, and the state, are the same as without
     it.
 
-    The multiplier at the start of the step is carried in the solver state.
+    The multiplier at the start of the step is carried in the solver state; at the
+    start of the phase it is `start` (computed once, by `_release_run`).
     """
 
     solver: diffrax.AbstractSolver
     watch: Callable
+    start: Float[Array, ""]
     adaptive: bool = eqx.field(static=True)
     stages: Callable | None = None
 
@@ -480,7 +482,7 @@ class _WatchedSolver(AbstractForwardingSolver):
         return tableau if isinstance(tableau, diffrax.ButcherTableau) else None
 
     def init(self, terms, t0, t1, y0, args):
-        w0 = self.watch(t0, y0, args)
+        w0 = self.start
         if self._tableau() is None:
             return self.solver.init(terms, t0, t1, y0, args), w0
         stages = diffrax.ODETerm(self.stages)
@@ -597,11 +599,11 @@ def _run_phase(
     `event` is a tuple of condition functions (the phase's own, if any, then the
     divergence check); `watch`, if given, is `(watch_fn, pick)`: the multiplier the
     attached phase samples inside each step, as a function of the state and as a
-    function of all the multipliers (`_WatchedSolver`), under an `adaptive`
-    controller or not."""
+    function of all the multipliers (`_WatchedSolver`), and its value at `(t0, y0)`,
+    under an `adaptive` controller or not."""
     solver = stabilization.wrap_solver(solver, system, stepsize_controller, adjoint)
     if watch is not None:
-        watch_fn, pick = watch
+        watch_fn, pick, start = watch
         field = _field_and_multipliers(system, stabilization)
 
         def stages(t, y_and_w, args):
@@ -609,7 +611,7 @@ def _run_phase(
             return derivative, pick(lam)
 
         solver = prepare_to_wrap(solver, stepsize_controller, adjoint)
-        solver = _WatchedSolver(solver, watch_fn, adaptive, stages)
+        solver = _WatchedSolver(solver, watch_fn, start, adaptive, stages)
     terms = diffrax.ODETerm(_vector_field(system, stabilization))
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
@@ -811,7 +813,8 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
         return watched(lam)
 
-    at_start = contact_force(t0, (q0, qd0), args) < 0
+    force_at_start = contact_force(t0, (q0, qd0), args)
+    at_start = force_at_start < 0
     # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
     root_tol = float_tolerance(1e-12, 100.0, q0.dtype)
     release_event = diffrax.Event(
@@ -830,7 +833,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         (q0, qd0),
         jnp.clip(ts, t0, t_attach_end),
         release_event,
-        (contact_force, watched),
+        (contact_force, watched, force_at_start),
         adaptive=adaptive,
     )
     result1 = attached_phase.result
@@ -979,37 +982,41 @@ def _simulate(
         qf, qdf = stabilization.project_saved(phases.free, run.q, run.qd, ts, args)
         q, qd = phases.combine(qa, qf), phases.combine(qda, qdf)
 
-    def derived(q_, qd_, t_, sys_, keep_rows):
-        out = {}
-        if saveat.multipliers:
+    def solved(sys_, keep_rows):
+        """The multipliers (in the rows of `system`) and the singular flag of
+        `sys_`'s KKT solve at the saved states."""
+
+        def one(q_, qd_, t_):
             _, lam, singular = sys_.solve_accelerations(q_, qd_, t_, args)
             if keep_rows is not None:
                 lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
-            out["multipliers"] = lam
-            out["constraint_forces"] = system.constraint_jacobian(q_, t_, args).T @ lam
-            out["singular"] = singular
-        if saveat.energy:
-            out["energy"] = system.energy(q_, qd_, t_, args)
-        if saveat.violation:
-            out["position"] = system.holonomic_residual(q_, t_, args)
-            out["velocity"] = system.velocity_residual(q_, qd_, t_, args)
-        return out
+            return lam, singular
+
+        return jax.vmap(one)(q, qd, ts)
 
     n = q0.shape[0]
     system_k = sum(c.num_constraints(n, args, q0.dtype) for c in system.constraints)
-    if phases is None:
-        extra = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
-    else:
-        ea = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
-        ef = jax.vmap(lambda a, b, c: derived(a, b, c, phases.free, phases.keep_rows))(
-            q, qd, ts
+    extra = {}
+    if saveat.multipliers:
+        lam, singular_saved = solved(system, None)
+        if phases is not None:
+            lam_f, singular_f = solved(phases.free, phases.keep_rows)
+            lam = jnp.where(phases.attached[:, None], lam, lam_f)
+            singular_saved = jnp.where(phases.attached, singular_saved, singular_f)
+        # (The released rows of the free phase's multipliers are zero: one product
+        # with the full system's `A` serves both phases.)
+        jac = jax.vmap(system.constraint_jacobian, (0, 0, None))(q, ts, args)
+        extra["multipliers"] = lam
+        extra["constraint_forces"] = jnp.einsum("tkn,tk->tn", jac, lam)
+        extra["singular"] = singular_saved
+    if saveat.energy:
+        extra["energy"] = jax.vmap(system.energy, (0, 0, 0, None))(q, qd, ts, args)
+    if saveat.violation:
+        extra["position"] = jax.vmap(system.holonomic_residual, (0, 0, None))(
+            q, ts, args
         )
-        extra = jax.tree.map(
-            lambda a, b: jnp.where(
-                phases.attached.reshape((-1,) + (1,) * (a.ndim - 1)), a, b
-            ),
-            ea,
-            ef,
+        extra["velocity"] = jax.vmap(system.velocity_residual, (0, 0, 0, None))(
+            q, qd, ts, args
         )
 
     # A run that failed where the KKT matrix is singular failed because of it: the
