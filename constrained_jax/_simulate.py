@@ -404,6 +404,101 @@ _WATCH_ROUGHNESS = 0.25
 _WATCH_GAP = 0.3
 
 
+class _IllinoisState(eqx.Module):
+    lower: Float[Array, ""]
+    upper: Float[Array, ""]
+    f_lower: Float[Array, ""]
+    f_upper: Float[Array, ""]
+    side: Int[Array, ""]
+    t: Float[Array, ""]
+    f: Float[Array, ""]
+    diff: Float[Array, ""]
+
+
+def _event_value(fn, t, args):
+    """diffrax's event function at `t`, as one scalar: the sum of the event values
+    (diffrax zeroes all but the triggered one)."""
+    values, aux = fn(t, args)
+    return sum(jnp.asarray(v, jnp.result_type(t)) for v in jax.tree.leaves(values)), aux
+
+
+class _Illinois(optx.AbstractRootFinder):
+    """The release time: a bracketed secant (Illinois) root find of the watched
+    multiplier along the dense output of the step where it changed sign.
+
+    Derivative-free (Newton would differentiate the KKT solve along the
+    interpolation: a copy of its derivative in the program for nothing), and never
+    leaves the bracket `[lower, upper]` that diffrax passes in `options`. It stops
+    as `optx.Newton` does, when the last step is below `atol + rtol |t|` and the
+    value below `atol`, or when the bracket has shrunk to round-off. Convergence is
+    superlinear (order about 1.44), so the root is at round-off when it stops.
+    """
+
+    rtol: float
+    atol: float
+    norm: Callable = jnp.abs
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del y, f_struct, aux_struct, tags
+        dtype = jnp.result_type(options["lower"])
+        lower = jnp.asarray(options["lower"], dtype)
+        upper = jnp.asarray(options["upper"], dtype)
+        f_lower, _ = _event_value(fn, lower, args)
+        f_upper, _ = _event_value(fn, upper, args)
+        return _IllinoisState(
+            lower, upper, f_lower, f_upper, jnp.array(0), upper, f_upper, upper - lower
+        )
+
+    def _secant(self, state):
+        a, b, fa, fb = state.lower, state.upper, state.f_lower, state.f_upper
+        denominator = fb - fa
+        secant = (a * fb - b * fa) / jnp.where(denominator == 0, 1, denominator)
+        # (A sign change, or a root at an end, is given; the clip guards round-off.)
+        secant = jnp.clip(secant, jnp.minimum(a, b), jnp.maximum(a, b))
+        return jnp.where(fb == 0, b, jnp.where(fa == 0, a, secant))
+
+    def step(self, fn, y, args, options, state, tags):
+        del y, options, tags
+        t = self._secant(state)
+        f, aux = _event_value(fn, t, args)
+        # `t` replaces the end whose value has the same sign; an end kept twice in a
+        # row has its value halved (Illinois), so that both ends converge.
+        replace_upper = jnp.sign(f) == jnp.sign(state.f_upper)
+        side = jnp.where(replace_upper, -1, 1)
+        kept_twice = side == state.side
+        new = _IllinoisState(
+            lower=jnp.where(replace_upper, state.lower, t),
+            upper=jnp.where(replace_upper, t, state.upper),
+            f_lower=jnp.where(
+                replace_upper,
+                jnp.where(kept_twice, 0.5 * state.f_lower, state.f_lower),
+                f,
+            ),
+            f_upper=jnp.where(
+                replace_upper,
+                f,
+                jnp.where(kept_twice, 0.5 * state.f_upper, state.f_upper),
+            ),
+            side=side,
+            t=t,
+            f=f,
+            diff=t - state.t,
+        )
+        return t, new, aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, args, options, tags
+        small_step = jnp.abs(state.diff) < self.atol + self.rtol * jnp.abs(y)
+        collapsed = jnp.abs(state.upper - state.lower) <= 4 * jnp.finfo(
+            y.dtype
+        ).eps * jnp.maximum(jnp.abs(state.upper), jnp.abs(state.lower))
+        done = (small_step & (jnp.abs(state.f) < self.atol)) | collapsed
+        return done | (state.f == 0), optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, {}
+
+
 def _diverged_condition(system, q_ref, t_ref, args):
     """A boolean event: non-finite state, or constraint residuals beyond `_DIVERGED`.
 
@@ -819,7 +914,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
     root_tol = float_tolerance(1e-12, 100.0, q0.dtype)
     release_event = diffrax.Event(
         (contact_force, _diverged_condition(system, q0, t0, args)),
-        root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
+        root_finder=_Illinois(rtol=root_tol, atol=root_tol),
     )
     # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
     # phase if it already has the wrong sign).
@@ -867,7 +962,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
                 diverged_free,
                 lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
             ),
-            root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
+            root_finder=_Illinois(rtol=root_tol, atol=root_tol),
         )
     free_phase = phase(
         free, t_rel, t1, (q_rel, qd_rel), jnp.clip(ts, t_rel, t1), recontact_event
@@ -982,9 +1077,10 @@ def _simulate(
         qf, qdf = stabilization.project_saved(phases.free, run.q, run.qd, ts, args)
         q, qd = phases.combine(qa, qf), phases.combine(qda, qdf)
 
-    def solved(sys_, keep_rows):
-        """The multipliers (in the rows of `system`) and the singular flag of
-        `sys_`'s KKT solve at the saved states."""
+    def solved(sys_, keep_rows, end: bool):
+        """The multipliers (in the rows of `system`) and the singular flags of
+        `sys_`'s KKT solve at the saved states, and with `end` also the flag at the
+        last state reached (one traced solve for all of them)."""
 
         def one(q_, qd_, t_):
             _, lam, singular = sys_.solve_accelerations(q_, qd_, t_, args)
@@ -992,15 +1088,29 @@ def _simulate(
                 lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
             return lam, singular
 
-        return jax.vmap(one)(q, qd, ts)
+        if not end:
+            return jax.vmap(one)(q, qd, ts), None
+        points = jax.tree.map(
+            lambda a, b: jnp.concatenate([a, b[None]]),
+            (q, qd, ts),
+            (run.q_end, run.qd_end, run.t_end),
+        )
+        lam, singular = jax.vmap(one)(*points)
+        return (lam[:-1], singular[:-1]), singular[-1]
 
     n = q0.shape[0]
     system_k = sum(c.num_constraints(n, args, q0.dtype) for c in system.constraints)
     extra = {}
+    # A run that failed where the KKT matrix is singular failed because of it: the
+    # vector field returns NaN there, so the steps were rejected until the budget ran
+    # out. Checked at the last state reached (and at the saved states if available).
+    end_system = system if phases is None else phases.free
     if saveat.multipliers:
-        lam, singular_saved = solved(system, None)
+        (lam, singular_saved), singular_end = solved(system, None, phases is None)
         if phases is not None:
-            lam_f, singular_f = solved(phases.free, phases.keep_rows)
+            (lam_f, singular_f), singular_end = solved(
+                phases.free, phases.keep_rows, True
+            )
             lam = jnp.where(phases.attached[:, None], lam, lam_f)
             singular_saved = jnp.where(phases.attached, singular_saved, singular_f)
         # (The released rows of the free phase's multipliers are zero: one product
@@ -1019,17 +1129,14 @@ def _simulate(
             q, qd, ts, args
         )
 
-    # A run that failed where the KKT matrix is singular failed because of it: the
-    # vector field returns NaN there, so the steps were rejected until the budget ran
-    # out. Checked at the last state reached (and at the saved states if available).
-    end_system = system if phases is None else phases.free
-    _, _, singular = end_system.solve_accelerations(
-        run.q_end, run.qd_end, run.t_end, args
-    )
     result = run.result
     if saveat.multipliers:
         reached = jnp.all(jnp.isfinite(q), axis=1)
-        singular = singular | jnp.any(extra["singular"] & reached)
+        singular = singular_end | jnp.any(extra["singular"] & reached)
+    else:
+        _, _, singular = end_system.solve_accelerations(
+            run.q_end, run.qd_end, run.t_end, args
+        )
     result = RESULTS.where(
         singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
     )
