@@ -413,25 +413,23 @@ class _IllinoisState(eqx.Module):
     t: Float[Array, ""]
     f: Float[Array, ""]
     diff: Float[Array, ""]
-
-
-def _event_value(fn, t, args):
-    """diffrax's event function at `t`, as one scalar: the sum of the event values
-    (diffrax zeroes all but the triggered one)."""
-    values, aux = fn(t, args)
-    return sum(jnp.asarray(v, jnp.result_type(t)) for v in jax.tree.leaves(values)), aux
+    first: Bool[Array, ""]
 
 
 class _Illinois(optx.AbstractRootFinder):
-    """The release time: a bracketed secant (Illinois) root find of the watched
-    multiplier along the dense output of the step where it changed sign.
+    """The release (and re-contact) time: a bracketed secant (Illinois) root find
+    along the dense output of the step where the event changed sign.
 
     Derivative-free (Newton would differentiate the KKT solve along the
     interpolation: a copy of its derivative in the program for nothing), and never
-    leaves the bracket `[lower, upper]` that diffrax passes in `options`. It stops
-    as `optx.Newton` does, when the last step is below `atol + rtol |t|` and the
-    value below `atol`, or when the bracket has shrunk to round-off. Convergence is
+    leaves the bracket `[lower, upper]` that diffrax passes in `options`. The event
+    function is evaluated at two points per step (the bracket's ends at the first
+    step, the new iterate twice after), so that it is traced once. It stops as
+    `optx.Newton` does, when the last step is below `atol + rtol |t|` and the value
+    below `atol`, or when the bracket has shrunk to round-off; convergence is
     superlinear (order about 1.44), so the root is at round-off when it stops.
+    diffrax zeroes all event values but the triggered one's: their sum is the
+    function whose root is found.
     """
 
     rtol: float
@@ -439,59 +437,67 @@ class _Illinois(optx.AbstractRootFinder):
     norm: Callable = jnp.abs
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del y, f_struct, aux_struct, tags
+        del y, fn, args, f_struct, aux_struct, tags
         dtype = jnp.result_type(options["lower"])
         lower = jnp.asarray(options["lower"], dtype)
         upper = jnp.asarray(options["upper"], dtype)
-        f_lower, _ = _event_value(fn, lower, args)
-        f_upper, _ = _event_value(fn, upper, args)
+        inf = jnp.asarray(jnp.inf, dtype)
         return _IllinoisState(
-            lower, upper, f_lower, f_upper, jnp.array(0), upper, f_upper, upper - lower
+            lower, upper, inf, inf, jnp.array(0), upper, inf, inf, jnp.array(True)
         )
 
-    def _secant(self, state):
-        a, b, fa, fb = state.lower, state.upper, state.f_lower, state.f_upper
-        denominator = fb - fa
-        secant = (a * fb - b * fa) / jnp.where(denominator == 0, 1, denominator)
+    @staticmethod
+    def _secant(a, b, fa, fb):
+        denominator = jnp.where(fb == fa, 1, fb - fa)
         # (A sign change, or a root at an end, is given; the clip guards round-off.)
-        secant = jnp.clip(secant, jnp.minimum(a, b), jnp.maximum(a, b))
+        secant = jnp.clip(
+            (a * fb - b * fa) / denominator, jnp.minimum(a, b), jnp.maximum(a, b)
+        )
         return jnp.where(fb == 0, b, jnp.where(fa == 0, a, secant))
 
     def step(self, fn, y, args, options, state, tags):
         del y, options, tags
-        t = self._secant(state)
-        f, aux = _event_value(fn, t, args)
+        a, b, fa, fb = state.lower, state.upper, state.f_lower, state.f_upper
+        t = jnp.where(state.first, b, self._secant(a, b, fa, fb))
+        points = jnp.where(state.first, jnp.stack([a, b]), jnp.stack([t, t]))
+
+        def value(t_):
+            values, aux = fn(t_, args)
+            leaves = jax.tree.leaves(values)
+            return sum(jnp.asarray(v, points.dtype) for v in leaves), aux
+
+        fs, aux = jax.vmap(value)(points)
+        aux = jax.tree.map(lambda x: x[-1], aux)
+        f = fs[1]
         # `t` replaces the end whose value has the same sign; an end kept twice in a
         # row has its value halved (Illinois), so that both ends converge.
-        replace_upper = jnp.sign(f) == jnp.sign(state.f_upper)
+        replace_upper = jnp.sign(f) == jnp.sign(fb)
         side = jnp.where(replace_upper, -1, 1)
-        kept_twice = side == state.side
-        new = _IllinoisState(
-            lower=jnp.where(replace_upper, state.lower, t),
-            upper=jnp.where(replace_upper, t, state.upper),
-            f_lower=jnp.where(
-                replace_upper,
-                jnp.where(kept_twice, 0.5 * state.f_lower, state.f_lower),
-                f,
-            ),
-            f_upper=jnp.where(
-                replace_upper,
-                f,
-                jnp.where(kept_twice, 0.5 * state.f_upper, state.f_upper),
-            ),
+        halve = jnp.where(side == state.side, 0.5, 1.0)
+        update = _IllinoisState(
+            lower=jnp.where(replace_upper, a, t),
+            upper=jnp.where(replace_upper, t, b),
+            f_lower=jnp.where(replace_upper, halve * fa, f),
+            f_upper=jnp.where(replace_upper, f, halve * fb),
             side=side,
             t=t,
             f=f,
             diff=t - state.t,
+            first=jnp.array(False),
         )
+        start = _IllinoisState(
+            a, b, fs[0], fs[1], jnp.array(0), b, f, jnp.inf, jnp.array(False)
+        )
+        new = jax.tree.map(lambda x, y_: jnp.where(state.first, x, y_), start, update)
         return t, new, aux
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, args, options, tags
         small_step = jnp.abs(state.diff) < self.atol + self.rtol * jnp.abs(y)
-        collapsed = jnp.abs(state.upper - state.lower) <= 4 * jnp.finfo(
-            y.dtype
-        ).eps * jnp.maximum(jnp.abs(state.upper), jnp.abs(state.lower))
+        eps = jnp.finfo(jnp.result_type(y)).eps
+        collapsed = jnp.abs(state.upper - state.lower) <= 4 * eps * jnp.maximum(
+            jnp.abs(state.upper), jnp.abs(state.lower)
+        )
         done = (small_step & (jnp.abs(state.f) < self.atol)) | collapsed
         return done | (state.f == 0), optx.RESULTS.successful
 

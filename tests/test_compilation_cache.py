@@ -58,14 +58,7 @@ def test_switch_turns_it_off(tmp_path, monkeypatch, restore_cache_config, value)
 def test_not_enabled_by_import(tmp_path):
     """Importing the library leaves JAX's cache folder unset."""
     code = "import jax, constrained_jax; print(jax.config.jax_compilation_cache_dir)"
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        env=_env(tmp_path),
-    ).stdout
-    assert out.strip() == "None"
+    assert _python(code, tmp_path).strip() == "None"
 
 
 _PROGRAM = """
@@ -83,13 +76,19 @@ print(path, len(hits))
 """
 
 
-def _env(tmp_path):
+def _python(code, tmp_path) -> str:
+    """The standard output of `code` run by a new Python process, with this
+    checkout's `constrained_jax` and `XDG_CACHE_HOME=tmp_path`."""
     env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path))
     env.pop("CONSTRAINED_JAX_COMPILATION_CACHE", None)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(pathlib.Path(cjax.__file__).parents[1]), env.get("PYTHONPATH", "")]
     )
-    return env
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env
+    )
+    assert run.returncode == 0, run.stderr
+    return run.stdout
 
 
 def test_second_process_reads_the_entry(tmp_path):
@@ -97,13 +96,7 @@ def test_second_process_reads_the_entry(tmp_path):
     compiling the same program finds it there (a cache hit) and writes nothing new."""
 
     def run():
-        out = subprocess.run(
-            [sys.executable, "-c", _PROGRAM],
-            capture_output=True,
-            text=True,
-            check=True,
-            env=_env(tmp_path),
-        ).stdout.split()
+        out = _python(_PROGRAM, tmp_path).split()
         return pathlib.Path(out[0]), int(out[1])
 
     path, hits = run()
