@@ -7,6 +7,9 @@ Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-p
 import importlib.metadata
 
 from . import plot as plot, scenes as scenes
+from ._compilation_cache import (
+    enable_compilation_cache as enable_compilation_cache,
+)
 from ._constraints import (
     AbstractConstraint as AbstractConstraint,
     Holonomic as Holonomic,

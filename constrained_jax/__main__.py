@@ -20,6 +20,11 @@ without holding Python's lock), then runs them one by one; the first call of eac
 program (tracing, compilation and one run) is listed below the table. Compilation
 dominates the tour's run time (seconds per program; the solves take milliseconds).
 
+Compiled programs are kept in JAX's persistent compilation cache
+(`constrained_jax.enable_compilation_cache`: `$XDG_CACHE_HOME/constrained_jax/jax` or
+`~/.cache/constrained_jax/jax`), so a second run skips nearly all of the compilation;
+`--no-compilation-cache` (or `CONSTRAINED_JAX_COMPILATION_CACHE=0`) turns it off.
+
 Pictures need matplotlib (`pip install "constrained_jax[plot]"`); without it the
 checks still run, and the pictures are skipped with a message saying so.
 """
@@ -94,7 +99,9 @@ def _parser() -> argparse.ArgumentParser:
             "Each row of the table compares a computed number with the closed form "
             "and states its tolerance on the relative error (divided by the named "
             "scale where the closed form is zero); the exit status is 1 if any check "
-            "fails. Pictures need matplotlib: pip install 'constrained_jax[plot]'."
+            "fails. Pictures need matplotlib: pip install 'constrained_jax[plot]'. "
+            "Compiled programs are kept in JAX's persistent compilation cache, so a "
+            "second run skips most of the compilation (--no-compilation-cache)."
         ),
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -107,6 +114,16 @@ def _parser() -> argparse.ArgumentParser:
             help=f"folder for the pictures (default ./{_DEFAULT_OUT}/)",
         )
         p.add_argument("--no-plots", action="store_true", help="draw no pictures")
+        p.add_argument(
+            "--no-compilation-cache",
+            action="store_true",
+            help=(
+                "do not use JAX's persistent compilation cache (default: on, in "
+                "$XDG_CACHE_HOME/constrained_jax/jax or ~/.cache/constrained_jax/jax;"
+                " the environment variable CONSTRAINED_JAX_COMPILATION_CACHE=0 does "
+                "the same)"
+            ),
+        )
         p.add_argument(
             "--jobs",
             type=int,
@@ -160,6 +177,10 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     import jax
 
+    from . import enable_compilation_cache
+
+    if not ns.no_compilation_cache:
+        enable_compilation_cache()
     jax.config.update("jax_enable_x64", True)
     plots = not ns.no_plots
     if plots and not _have_matplotlib():

@@ -404,6 +404,107 @@ _WATCH_ROUGHNESS = 0.25
 _WATCH_GAP = 0.3
 
 
+class _IllinoisState(eqx.Module):
+    lower: Float[Array, ""]
+    upper: Float[Array, ""]
+    f_lower: Float[Array, ""]
+    f_upper: Float[Array, ""]
+    side: Int[Array, ""]
+    t: Float[Array, ""]
+    f: Float[Array, ""]
+    diff: Float[Array, ""]
+    first: Bool[Array, ""]
+
+
+class _Illinois(optx.AbstractRootFinder):
+    """The release (and re-contact) time: a bracketed secant (Illinois) root find
+    along the dense output of the step where the event changed sign.
+
+    Derivative-free (Newton would differentiate the KKT solve along the
+    interpolation: a copy of its derivative in the program for nothing), and never
+    leaves the bracket `[lower, upper]` that diffrax passes in `options`. The event
+    function is evaluated at two points per step (the bracket's ends at the first
+    step, the new iterate twice after), so that it is traced once. It stops as
+    `optx.Newton` does, when the last step is below `atol + rtol |t|` and the value
+    below `atol`, or when the bracket has shrunk to round-off; convergence is
+    superlinear (order about 1.44), so the root is at round-off when it stops.
+    diffrax zeroes all event values but the triggered one's: their sum is the
+    function whose root is found.
+    """
+
+    rtol: float
+    atol: float
+    norm: Callable = jnp.abs
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del y, fn, args, f_struct, aux_struct, tags
+        dtype = jnp.result_type(options["lower"])
+        lower = jnp.asarray(options["lower"], dtype)
+        upper = jnp.asarray(options["upper"], dtype)
+        inf = jnp.asarray(jnp.inf, dtype)
+        return _IllinoisState(
+            lower, upper, inf, inf, jnp.array(0), upper, inf, inf, jnp.array(True)
+        )
+
+    @staticmethod
+    def _secant(a, b, fa, fb):
+        denominator = jnp.where(fb == fa, 1, fb - fa)
+        # (A sign change, or a root at an end, is given; the clip guards round-off.)
+        secant = jnp.clip(
+            (a * fb - b * fa) / denominator, jnp.minimum(a, b), jnp.maximum(a, b)
+        )
+        return jnp.where(fb == 0, b, jnp.where(fa == 0, a, secant))
+
+    def step(self, fn, y, args, options, state, tags):
+        del y, options, tags
+        a, b, fa, fb = state.lower, state.upper, state.f_lower, state.f_upper
+        t = jnp.where(state.first, b, self._secant(a, b, fa, fb))
+        points = jnp.where(state.first, jnp.stack([a, b]), jnp.stack([t, t]))
+
+        def value(t_):
+            values, aux = fn(t_, args)
+            leaves = jax.tree.leaves(values)
+            return sum(jnp.asarray(v, points.dtype) for v in leaves), aux
+
+        fs, aux = jax.vmap(value)(points)
+        aux = jax.tree.map(lambda x: x[-1], aux)
+        f = fs[1]
+        # `t` replaces the end whose value has the same sign; an end kept twice in a
+        # row has its value halved (Illinois), so that both ends converge.
+        replace_upper = jnp.sign(f) == jnp.sign(fb)
+        side = jnp.where(replace_upper, -1, 1)
+        halve = jnp.where(side == state.side, 0.5, 1.0)
+        update = _IllinoisState(
+            lower=jnp.where(replace_upper, a, t),
+            upper=jnp.where(replace_upper, t, b),
+            f_lower=jnp.where(replace_upper, halve * fa, f),
+            f_upper=jnp.where(replace_upper, f, halve * fb),
+            side=side,
+            t=t,
+            f=f,
+            diff=t - state.t,
+            first=jnp.array(False),
+        )
+        start = _IllinoisState(
+            a, b, fs[0], fs[1], jnp.array(0), b, f, jnp.inf, jnp.array(False)
+        )
+        new = jax.tree.map(lambda x, y_: jnp.where(state.first, x, y_), start, update)
+        return t, new, aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, args, options, tags
+        small_step = jnp.abs(state.diff) < self.atol + self.rtol * jnp.abs(y)
+        eps = jnp.finfo(jnp.result_type(y)).eps
+        collapsed = jnp.abs(state.upper - state.lower) <= 4 * eps * jnp.maximum(
+            jnp.abs(state.upper), jnp.abs(state.lower)
+        )
+        done = (small_step & (jnp.abs(state.f) < self.atol)) | collapsed
+        return done | (state.f == 0), optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, {}
+
+
 def _diverged_condition(system, q_ref, t_ref, args):
     """A boolean event: non-finite state, or constraint residuals beyond `_DIVERGED`.
 
@@ -462,11 +563,13 @@ class _WatchedSolver(AbstractForwardingSolver):
     part in the error estimate, so the steps, and the state, are the same as without
     it.
 
-    The multiplier at the start of the step is carried in the solver state.
+    The multiplier at the start of the step is carried in the solver state; at the
+    start of the phase it is `start` (computed once, by `_release_run`).
     """
 
     solver: diffrax.AbstractSolver
     watch: Callable
+    start: Float[Array, ""]
     adaptive: bool = eqx.field(static=True)
     stages: Callable | None = None
 
@@ -480,7 +583,7 @@ class _WatchedSolver(AbstractForwardingSolver):
         return tableau if isinstance(tableau, diffrax.ButcherTableau) else None
 
     def init(self, terms, t0, t1, y0, args):
-        w0 = self.watch(t0, y0, args)
+        w0 = self.start
         if self._tableau() is None:
             return self.solver.init(terms, t0, t1, y0, args), w0
         stages = diffrax.ODETerm(self.stages)
@@ -597,11 +700,11 @@ def _run_phase(
     `event` is a tuple of condition functions (the phase's own, if any, then the
     divergence check); `watch`, if given, is `(watch_fn, pick)`: the multiplier the
     attached phase samples inside each step, as a function of the state and as a
-    function of all the multipliers (`_WatchedSolver`), under an `adaptive`
-    controller or not."""
+    function of all the multipliers (`_WatchedSolver`), and its value at `(t0, y0)`,
+    under an `adaptive` controller or not."""
     solver = stabilization.wrap_solver(solver, system, stepsize_controller, adjoint)
     if watch is not None:
-        watch_fn, pick = watch
+        watch_fn, pick, start = watch
         field = _field_and_multipliers(system, stabilization)
 
         def stages(t, y_and_w, args):
@@ -609,7 +712,7 @@ def _run_phase(
             return derivative, pick(lam)
 
         solver = prepare_to_wrap(solver, stepsize_controller, adjoint)
-        solver = _WatchedSolver(solver, watch_fn, adaptive, stages)
+        solver = _WatchedSolver(solver, watch_fn, start, adaptive, stages)
     terms = diffrax.ODETerm(_vector_field(system, stabilization))
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
@@ -811,12 +914,13 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
         return watched(lam)
 
-    at_start = contact_force(t0, (q0, qd0), args) < 0
+    force_at_start = contact_force(t0, (q0, qd0), args)
+    at_start = force_at_start < 0
     # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
     root_tol = float_tolerance(1e-12, 100.0, q0.dtype)
     release_event = diffrax.Event(
         (contact_force, _diverged_condition(system, q0, t0, args)),
-        root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
+        root_finder=_Illinois(rtol=root_tol, atol=root_tol),
     )
     # Phase 1, attached: from t0 until the multiplier falls through zero (an empty
     # phase if it already has the wrong sign).
@@ -830,7 +934,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         (q0, qd0),
         jnp.clip(ts, t0, t_attach_end),
         release_event,
-        (contact_force, watched),
+        (contact_force, watched, force_at_start),
         adaptive=adaptive,
     )
     result1 = attached_phase.result
@@ -864,7 +968,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
                 diverged_free,
                 lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
             ),
-            root_finder=optx.Newton(rtol=root_tol, atol=root_tol),
+            root_finder=_Illinois(rtol=root_tol, atol=root_tol),
         )
     free_phase = phase(
         free, t_rel, t1, (q_rel, qd_rel), jnp.clip(ts, t_rel, t1), recontact_event
@@ -979,50 +1083,66 @@ def _simulate(
         qf, qdf = stabilization.project_saved(phases.free, run.q, run.qd, ts, args)
         q, qd = phases.combine(qa, qf), phases.combine(qda, qdf)
 
-    def derived(q_, qd_, t_, sys_, keep_rows):
-        out = {}
-        if saveat.multipliers:
+    def solved(sys_, keep_rows, end: bool):
+        """The multipliers (in the rows of `system`) and the singular flags of
+        `sys_`'s KKT solve at the saved states, and with `end` also the flag at the
+        last state reached (one traced solve for all of them)."""
+
+        def one(q_, qd_, t_):
             _, lam, singular = sys_.solve_accelerations(q_, qd_, t_, args)
             if keep_rows is not None:
                 lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
-            out["multipliers"] = lam
-            out["constraint_forces"] = system.constraint_jacobian(q_, t_, args).T @ lam
-            out["singular"] = singular
-        if saveat.energy:
-            out["energy"] = system.energy(q_, qd_, t_, args)
-        if saveat.violation:
-            out["position"] = system.holonomic_residual(q_, t_, args)
-            out["velocity"] = system.velocity_residual(q_, qd_, t_, args)
-        return out
+            return lam, singular
+
+        if not end:
+            return jax.vmap(one)(q, qd, ts), None
+        points = jax.tree.map(
+            lambda a, b: jnp.concatenate([a, b[None]]),
+            (q, qd, ts),
+            (run.q_end, run.qd_end, run.t_end),
+        )
+        lam, singular = jax.vmap(one)(*points)
+        return (lam[:-1], singular[:-1]), singular[-1]
 
     n = q0.shape[0]
     system_k = sum(c.num_constraints(n, args, q0.dtype) for c in system.constraints)
-    if phases is None:
-        extra = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
-    else:
-        ea = jax.vmap(lambda a, b, c: derived(a, b, c, system, None))(q, qd, ts)
-        ef = jax.vmap(lambda a, b, c: derived(a, b, c, phases.free, phases.keep_rows))(
-            q, qd, ts
-        )
-        extra = jax.tree.map(
-            lambda a, b: jnp.where(
-                phases.attached.reshape((-1,) + (1,) * (a.ndim - 1)), a, b
-            ),
-            ea,
-            ef,
-        )
-
+    extra = {}
     # A run that failed where the KKT matrix is singular failed because of it: the
     # vector field returns NaN there, so the steps were rejected until the budget ran
     # out. Checked at the last state reached (and at the saved states if available).
     end_system = system if phases is None else phases.free
-    _, _, singular = end_system.solve_accelerations(
-        run.q_end, run.qd_end, run.t_end, args
-    )
+    if saveat.multipliers:
+        (lam, singular_saved), singular_end = solved(system, None, phases is None)
+        if phases is not None:
+            (lam_f, singular_f), singular_end = solved(
+                phases.free, phases.keep_rows, True
+            )
+            lam = jnp.where(phases.attached[:, None], lam, lam_f)
+            singular_saved = jnp.where(phases.attached, singular_saved, singular_f)
+        # (The released rows of the free phase's multipliers are zero: one product
+        # with the full system's `A` serves both phases.)
+        jac = jax.vmap(system.constraint_jacobian, (0, 0, None))(q, ts, args)
+        extra["multipliers"] = lam
+        extra["constraint_forces"] = jnp.einsum("tkn,tk->tn", jac, lam)
+        extra["singular"] = singular_saved
+    if saveat.energy:
+        extra["energy"] = jax.vmap(system.energy, (0, 0, 0, None))(q, qd, ts, args)
+    if saveat.violation:
+        extra["position"] = jax.vmap(system.holonomic_residual, (0, 0, None))(
+            q, ts, args
+        )
+        extra["velocity"] = jax.vmap(system.velocity_residual, (0, 0, 0, None))(
+            q, qd, ts, args
+        )
+
     result = run.result
     if saveat.multipliers:
         reached = jnp.all(jnp.isfinite(q), axis=1)
-        singular = singular | jnp.any(extra["singular"] & reached)
+        singular = singular_end | jnp.any(extra["singular"] & reached)
+    else:
+        _, _, singular = end_system.solve_accelerations(
+            run.q_end, run.qd_end, run.t_end, args
+        )
     result = RESULTS.where(
         singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
     )

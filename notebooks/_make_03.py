@@ -65,7 +65,13 @@ the constraints and continues with the free flight.
         """
 import jax
 
+import constrained_jax as cjax
 
+
+# Compiled programs are kept on disk (`~/.cache/constrained_jax/jax`): a second run
+# of the notebook skips most of the compilation. CONSTRAINED_JAX_COMPILATION_CACHE=0
+# turns it off.
+cjax.enable_compilation_cache()
 jax.config.update("jax_enable_x64", True)
 """
     ),

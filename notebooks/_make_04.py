@@ -51,7 +51,13 @@ this notebook (they are noisy on a busy one; the step counts are not).
         """
 import jax
 
+import constrained_jax as cjax
 
+
+# Compiled programs are kept on disk (`~/.cache/constrained_jax/jax`): a second run
+# of the notebook skips most of the compilation. CONSTRAINED_JAX_COMPILATION_CACHE=0
+# turns it off.
+cjax.enable_compilation_cache()
 jax.config.update("jax_enable_x64", True)
 """
     ),

@@ -50,7 +50,13 @@ tangent per parameter), which compiles in about half the time of reverse mode.
         """
 import jax
 
+import constrained_jax as cjax
 
+
+# Compiled programs are kept on disk (`~/.cache/constrained_jax/jax`): a second run
+# of the notebook skips most of the compilation. CONSTRAINED_JAX_COMPILATION_CACHE=0
+# turns it off.
+cjax.enable_compilation_cache()
 jax.config.update("jax_enable_x64", True)
 """
     ),

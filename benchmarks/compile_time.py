@@ -1,0 +1,181 @@
+"""Where the compile time of `simulate` goes.
+
+For three programs -- (a) `jit(simulate)` of the two cylinders, attached (Tsit5), (b)
+the tour's two-cylinder program with the release event, (c) the tour's pendulum
+program (Tsit5) -- reports the seconds of tracing + lowering
+(`jax.jit(fn).lower(...)`) and of XLA's compilation (`.compile()`), wall clock and
+CPU time of the process (less sensitive to a busy machine), the size of the
+optimized HLO module (instructions, `while` loops, `conditional`s) and how many
+times the Lagrangian is traced (calls of a Python wrapper around it while tracing).
+Medians of `--repeats` runs, `jax.clear_caches()` before each (and no persistent
+compilation cache).
+
+    python benchmarks/compile_time.py [--repeats 3] [--only a,b,c]
+
+Writes `benchmarks/results/compile_time.json`.
+"""
+
+import argparse
+import json
+import re
+import statistics
+import time
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+from _common import machine_info  # noqa: E402
+
+import constrained_jax as cjax  # noqa: E402
+from constrained_jax.scenes import (  # noqa: E402
+    pendulum as pendulum_scene,
+    two_cylinders as cylinders_scene,
+)
+from constrained_jax.tour import (  # noqa: E402
+    pendulum as pendulum_tour,
+    two_cylinders as cylinders_tour,
+)
+
+
+RESULTS = Path(__file__).parent / "results" / "compile_time.json"
+
+
+class _Counted:
+    """Patches `module.lagrangian` with a wrapper that counts its calls (made while
+    tracing only: the compiled program does not call Python)."""
+
+    def __init__(self, module):
+        self.module = module
+        self.calls = 0
+
+    def __enter__(self):
+        self.original = original = self.module.lagrangian
+
+        def counted(*args):
+            self.calls += 1
+            return original(*args)
+
+        self.module.lagrangian = counted
+        return self
+
+    def __exit__(self, *exc):
+        self.module.lagrangian = self.original
+
+
+def _cylinders_attached():
+    args = cylinders_scene.default_args()
+    q0, qd0 = cylinders_scene.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
+
+    def run(q0, qd0, args):
+        return cjax.simulate(
+            cylinders_scene.system(),
+            (0.0, 0.8),
+            q0,
+            qd0,
+            args,
+            solver=diffrax.Tsit5(),
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            saveat=cjax.SaveAt(t1=True),
+        )
+
+    return cylinders_scene, run, (q0, qd0, args)
+
+
+def _cylinders_release():
+    # The tour's program and the inputs of its default job.
+    (job,) = cylinders_tour.SCENE.jobs()
+    return cylinders_scene, job.program.make(), job.inputs
+
+
+def _pendulum():
+    job = next(
+        job for job in pendulum_tour.SCENE.jobs() if job.program is pendulum_tour.TSIT5
+    )
+    return pendulum_scene, job.program.make(), job.inputs
+
+
+CASES = {
+    "a": ("two cylinders attached, Tsit5", _cylinders_attached),
+    "b": ("two cylinders with the release event (tour)", _cylinders_release),
+    "c": ("pendulum, Tsit5 (tour)", _pendulum),
+}
+
+
+def hlo_counts(text: str) -> dict:
+    """Instructions, `while` loops and `conditional`s of an optimized HLO module."""
+    pattern = re.compile(r"\s+(ROOT )?%?[\w.\-]+ = ")
+    instructions = [line for line in text.splitlines() if pattern.match(line)]
+    return {
+        "hlo_instructions": len(instructions),
+        "hlo_while": sum(" while(" in line for line in instructions),
+        "hlo_conditional": sum(" conditional(" in line for line in instructions),
+        "hlo_lines": len(text.splitlines()),
+    }
+
+
+def measure(make, repeats: int) -> dict:
+    runs = []
+    for _ in range(repeats):
+        jax.clear_caches()
+        module, fn, inputs = make()
+        with _Counted(module) as counter:
+            start, cpu_start = time.perf_counter(), time.process_time()
+            lowered = jax.jit(fn).lower(*inputs)
+            traced, cpu_traced = time.perf_counter(), time.process_time()
+            compiled = lowered.compile()
+            done, cpu_done = time.perf_counter(), time.process_time()
+        runs.append(
+            {
+                "trace_lower_s": traced - start,
+                "compile_s": done - traced,
+                "trace_lower_cpu_s": cpu_traced - cpu_start,
+                "compile_cpu_s": cpu_done - cpu_traced,
+                "lagrangian_traces": counter.calls,
+                **hlo_counts(compiled.as_text()),
+            }
+        )
+        out = jax.block_until_ready(compiled(*inputs))
+        assert out.result == cjax.RESULTS.successful, cjax.RESULTS[out.result]
+    summary = {
+        key: statistics.median(run[key] for run in runs)
+        for key in ("trace_lower_s", "compile_s", "trace_lower_cpu_s", "compile_cpu_s")
+    }
+    summary["total_s"] = summary["trace_lower_s"] + summary["compile_s"]
+    summary |= {k: v for k, v in runs[-1].items() if not k.endswith("_s")}
+    summary["runs"] = runs
+    return summary
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--only", default="a,b,c")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    ns = parser.parse_args()
+    jax.config.update("jax_enable_compilation_cache", False)
+    results = {}
+    for key in ns.only.split(","):
+        name, make = CASES[key]
+        results[key] = {"name": name, **measure(make, ns.repeats)}
+        r = results[key]
+        print(
+            f"({key}) {name}: trace+lower {r['trace_lower_s']:.2f} s, compile "
+            f"{r['compile_s']:.2f} s (CPU {r['trace_lower_cpu_s']:.2f} s, "
+            f"{r['compile_cpu_s']:.2f} s), {r['hlo_instructions']} HLO instructions, "
+            f"{r['hlo_while']} while, {r['hlo_conditional']} conditional, "
+            f"Lagrangian traced {r['lagrangian_traces']} times"
+        )
+    ns.out.parent.mkdir(parents=True, exist_ok=True)
+    ns.out.write_text(
+        json.dumps({"machine": machine_info(), "cases": results}, indent=2) + "\n"
+    )
+    print(f"wrote {ns.out}")
+
+
+if __name__ == "__main__":
+    main()
