@@ -20,6 +20,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._adjoint import default_adjoint
 from ._constraints import Unilateral
 from ._misc import (
     all_finite,
@@ -145,7 +146,7 @@ def simulate(
     saveat: SaveAt = SaveAt(t1=True),
     dt0: float | None = None,
     max_steps: int = 16384,
-    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    adjoint: diffrax.AbstractAdjoint | None = None,
     consistency_tol: float | None = None,
     progress_meter: diffrax.AbstractProgressMeter = diffrax.NoProgressMeter(),
     throw: bool = True,
@@ -169,7 +170,7 @@ def simulate(
         steps are chosen to land on the save times, and the run ends at the last
         save time).
     - `stabilization`: `Unstabilized()`, `Baumgarte(alpha, beta)` or `Projection()`.
-    - `stepsize_controller`, `dt0`, `max_steps`, `adjoint`: as in
+    - `stepsize_controller`, `dt0`, `max_steps`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
         `stepsize_controller=None` (default) is
         `diffrax.PIDController(rtol=tol, atol=tol)` with `tol` following the dtype
@@ -178,6 +179,11 @@ def simulate(
         both below `4 eps` of the dtype is warned about (the run would stop at
         `max_steps`), not changed.
     - `saveat`: a [`constrained_jax.SaveAt`][].
+    - `adjoint`: how reverse-mode autodiff goes through the solve, a diffrax adjoint;
+        `None` (default) is chosen per case (today always
+        `diffrax.RecursiveCheckpointAdjoint()`; see `constrained_jax._adjoint` for
+        the measurements). For derivatives with respect to a few parameters,
+        `diffrax.ForwardMode()` with `jax.jvp` / `jax.jacfwd` is cheaper.
     - `progress_meter`: diffrax's progress meter for a long single run, e.g.
         `diffrax.TqdmProgressMeter()` (a bar per phase when a `Unilateral`
         constraint releases; refused by the variational integrator, which is not a
@@ -239,6 +245,7 @@ def simulate(
     stepsize_controller, consistency_tol = _dtype_defaults(
         stepsize_controller, consistency_tol, dtype
     )
+    adjoint = default_adjoint(adjoint)  # (h12-grad)
     return _simulate(
         system,
         jnp.asarray(t0, dtype),
