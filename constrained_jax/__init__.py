@@ -62,6 +62,7 @@ from ._simulate import (
 from ._solver import (
     AbstractKKTSolver as AbstractKKTSolver,
     AbstractSaddlePointSolver as AbstractSaddlePointSolver,
+    Automatic as Automatic,
     BorderedBlockTridiagonal as BorderedBlockTridiagonal,
     DenseLU as DenseLU,
     EquilibratedDenseLU as EquilibratedDenseLU,

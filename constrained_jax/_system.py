@@ -40,7 +40,7 @@ PATTERN_MISMATCH_MESSAGE = (
     "nonzero at this state (a coupling switched on by `jnp.where`, by `t` or by a "
     "parameter value the random draws did not hit), so the structured equations of "
     "motion would be wrong and the solve is refused. Pass "
-    "`saddle_point_solver=cjax.FullKKTLU()` (or `cjax.RangeSpaceLDL(dense=True)`) "
+    "`saddle_point_solver=cjax.FullKKTLU()` (or `cjax.RangeSpaceLDL(sparse=False)`) "
     "to the `LagrangianSystem`: these use dense matrices and no detected pattern."
 )
 
@@ -199,8 +199,9 @@ class LagrangianSystem(eqx.Module):
         self.constraints = constraints
         if not isinstance(saddle_point_solver, AbstractSaddlePointSolver):
             raise ValueError(
-                "`saddle_point_solver` must be `cjax.RangeSpaceLDL()` or "
-                f"`cjax.FullKKTLU()`, got {type(saddle_point_solver).__name__}."
+                "`saddle_point_solver` must be `cjax.Automatic()`, "
+                "`cjax.RangeSpaceLDL()`, `cjax.FullKKTLU()` or "
+                f"`cjax.SparseSchur()`, got {type(saddle_point_solver).__name__}."
             )
         self.forces = forces
         self.saddle_point_solver = saddle_point_solver

@@ -10,6 +10,7 @@ from .minres import MINRES as MINRES
 from .newton import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
 from .saddle_point import (
     AbstractSaddlePointSolver as AbstractSaddlePointSolver,
+    Automatic as Automatic,
     FullKKTLU as FullKKTLU,
     RangeSpaceLDL as RangeSpaceLDL,
 )

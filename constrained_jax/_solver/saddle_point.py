@@ -440,9 +440,13 @@ class Automatic(AbstractSaddlePointSolver):
         range-space method `SparseSchur`, whose cost follows the nonzeros.
     - otherwise: [`constrained_jax.FullKKTLU`][] with LAPACK's LU.
 
-    Like `RangeSpaceLDL`, every choice handles free gauge directions and reports
-    singular systems. For an indefinite `M` (not a kinetic energy) choose
-    `FullKKTLU()` explicitly.
+    Every choice reports singular systems (never a wrong answer). The unrolled
+    `RangeSpaceLDL` also solves free gauge directions (a massless coordinate that
+    nothing couples to); `FullKKTLU` solves those along a coordinate; `SparseSchur`
+    needs every mass pivot nonzero at run time and reports a zero mass (set through
+    `args`, say) as singular: pass `saddle_point_solver=cjax.FullKKTLU()` for such
+    systems. For an indefinite `M` (not a kinetic energy) choose `FullKKTLU()`
+    explicitly.
 
     The threshold is measured (`n`-link chain, one trajectory, Tsit5, against
     LAPACK's LU): at `n + k = 6` the unrolled solve is faster to run (2.5x) and to
