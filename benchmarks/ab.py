@@ -18,6 +18,9 @@ Cases (float64, after compilation):
 - `extremize 10k`: `jit(vmap(extremize))` of 10,000 cylinder-volume problems.
 - `functional Chebyshev(32)`, `functional PiecewiseLinear(1001)`: the catenary from
   the scene's parabola start.
+- `sim chain N=4`, `sim chain N=64`: one `simulate` of the N-link chain over 1 s;
+  `acc chain N=4 vmap 1000`, `acc chain N=64 vmap 100`: its accelerations (each
+  revision's default saddle-point solver).
 
     python benchmarks/ab.py --a 84b1f3a --b HEAD [--reps 31] [--only REGEX]
 """
@@ -123,6 +126,54 @@ def cases(cj) -> dict:
 
         label = f"functional {type(disc).__name__}({disc.num_nodes})"
         out[label] = (jax.jit(rope), (jnp.asarray(1.5),))
+    out.update(chain_cases(cj))
+    return out
+
+
+def _chain_lagrangian(q, qd, t, args):
+    return 0.5 * jnp.dot(qd, qd) - 9.81 * jnp.sum(q[1::2])
+
+
+def _chain_rods(q, t, args):
+    p = q.reshape(-1, 2)
+    d = p - jnp.concatenate([jnp.zeros((1, 2), p.dtype), p[:-1]])
+    return (jnp.sum(d * d, axis=1) - 1.0) / 2
+
+
+def chain_cases(cj) -> dict:
+    """The N-link chain of `scenes.chain` (m = l = 1), written here so that a
+    revision without that scene runs it too, with each revision's default solver."""
+    system = cj.LagrangianSystem(_chain_lagrangian, (cj.Holonomic(_chain_rods),))
+    out = {}
+
+    def straight(num_links, theta0):
+        radius = jnp.arange(1, num_links + 1, dtype=float)
+        q = jnp.stack([radius * jnp.sin(theta0), -radius * jnp.cos(theta0)], 1)
+        return q.reshape(-1), jnp.zeros(2 * num_links)
+
+    for num_links in (4, 64):
+
+        def run(theta0, num_links=num_links):
+            q0, qd0 = straight(num_links, theta0)
+            traj = cj.simulate(
+                system, (0.0, 1.0), q0, qd0, None, solver=diffrax.Tsit5(),
+                stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
+                saveat=cj.SaveAt(t1=True),
+            )  # fmt: skip
+            return traj.q[-1]
+
+        out[f"sim chain N={num_links}"] = (jax.jit(run), (jnp.asarray(0.5),))
+    rng = np.random.default_rng(1)
+    for num_links, num in ((4, 1000), (64, 100)):
+        phi = rng.uniform(-1, 1, (num, num_links))
+        q = jnp.asarray(
+            np.stack([np.cumsum(np.sin(phi), 1), -np.cumsum(np.cos(phi), 1)], 2)
+        ).reshape(num, -1)
+        qd = jnp.asarray(rng.normal(0, 1, q.shape))
+        fn = jax.jit(
+            jax.vmap(lambda q_, qd_: system.solve_accelerations(q_, qd_, 0.0, None)[:2])
+        )
+        out[f"acc chain N={num_links} vmap {num}"] = (fn, (q, qd))
     return out
 
 

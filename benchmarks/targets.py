@@ -1,0 +1,204 @@
+"""The table of issue 12 ("speed that scales with the system"), every row measured in
+this one run, with its target.
+
+Rows (float64, after compilation, medians; ratios within this run):
+
+1. EOM, `jit(vmap)` over 10,000 states, autodiff `solve_accelerations` / the
+   hand-written closed form: two cylinders, Cartesian pendulum (`dynamics.py`).
+2. One two-cylinder trajectory (`t in [0, 0.8]`): SymPy `LagrangesMethod` + SciPy
+   DOP853 / ours, ours / `diffrax.diffeqsolve` on the hand-written right-hand side;
+   1,000 trajectories `jit(vmap(simulate))` against the SymPy + SciPy loop
+   (`dynamics.py`).
+3. Compile (trace + lower + compile) of the first `jit(simulate)` of the two cylinders
+   and of the tour's two-cylinder program with the release event
+   (`compile_time.py`, cache off).
+4. Reverse-mode `d theta1(t1) / dI` through `simulate` / the forward solve
+   (`gradients.py`).
+5. The N-link chain (`chain.py`): EOM per state at `N = 256` (`vmap` over 1,000
+   states), one trajectory at `N = 256` (Tsit5, `rtol = 1e-8`, `t in [0, 1]`), and at
+   `N = 4` the default against LAPACK's LU (`FullKKTLU(unroll_max=0)`): run and
+   compile.
+
+    python benchmarks/targets.py [--out benchmarks/results]
+
+Writes `targets.json` and prints the table for `README.md`.
+"""
+
+import argparse
+import json
+import os
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import chain  # noqa: E402
+import compile_time  # noqa: E402
+import dynamics  # noqa: E402
+import gradients  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import machine_info  # noqa: E402
+
+import constrained_jax as cjax  # noqa: E402
+
+
+def measure(opts) -> list[dict]:
+    rows = []
+
+    def row(figure, before, value, target, met, unit=""):
+        rows.append(
+            {"figure": figure, "before": before, "value": value, "unit": unit,
+             "target": target, "met": bool(met)}
+        )  # fmt: skip
+        print(f"{figure:80s} {value:10.4g}{unit}  target {target}  met {met}")
+
+    acc = {
+        scene: dynamics.accelerations_benchmark(scene, 10_000, opts.repeats)
+        for scene in ("cylinders", "pendulum")
+    }
+    r = acc["cylinders"]["methods"]["autodiff solve_accelerations"]
+    row(
+        "EOM two cylinders, jit(vmap) 1e4: autodiff / hand-written",
+        "2.4x",
+        r["ratio_to_hand_written"],
+        "<= 1.3x",
+        r["ratio_to_hand_written"] <= 1.3,
+        "x",
+    )
+    r = acc["pendulum"]["methods"]["autodiff solve_accelerations"]
+    row(
+        "EOM Cartesian pendulum, same",
+        "0.9x",
+        r["ratio_to_hand_written"],
+        "<= 1.1x",
+        r["ratio_to_hand_written"] <= 1.1,
+        "x",
+    )
+
+    sizes = {"batch": 1000, "scipy_batch": 20, "repeats_one": opts.repeats,
+             "scipy_repeats_one": 3, "repeats_batch": 3}  # fmt: skip
+    traj = dynamics.trajectory_benchmark("cylinders", sizes)
+    one, batch = traj["one"], traj["batch"]
+    row(
+        "one two-cylinder trajectory: sympy + DOP853 / ours",
+        "2.9x",
+        one["speedup"],
+        ">= 5x",
+        one["speedup"] >= 5,
+        "x",
+    )
+    ratio = one["cjax"]["median_s"] / one["hand-written diffrax"]["median_s"]
+    row(
+        "same: ours / diffrax on the hand-written right-hand side",
+        "1.96x",
+        ratio,
+        "<= 1.3x",
+        ratio <= 1.3,
+        "x",
+    )
+    row(
+        "1000 trajectories, jit(vmap(simulate)) vs sympy + scipy loop",
+        "160x",
+        batch["speedup"],
+        ">= 100x",
+        batch["speedup"] >= 100,
+        "x",
+    )
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    first = compile_time.measure(compile_time.CASES["a"][1], 3)
+    row(
+        "compile, first jit(simulate) of the two cylinders (s)",
+        "2.4 s",
+        first["total_s"],
+        "<= 1.5 s",
+        first["total_s"] <= 1.5,
+        " s",
+    )
+    release = compile_time.measure(compile_time.CASES["b"][1], 3)
+    row(
+        "compile, the tour's two-cylinder program with the release (s)",
+        "11.9 s",
+        release["total_s"],
+        "<= 4 s",
+        release["total_s"] <= 4,
+        " s",
+    )
+
+    grad = gradients.cylinders_attached(opts.repeats)["methods"]
+    ratio = grad["grad (adjoint=None)"]["ratio_to_forward"]
+    row(
+        "reverse-mode d theta1(t1)/dI through simulate / forward",
+        "4.3x",
+        ratio,
+        "<= 3x",
+        ratio <= 3,
+        "x",
+    )
+    ratio = grad["jvp (ForwardMode)"]["ratio_to_forward"]
+    row(
+        "  (forward mode, jvp with diffrax.ForwardMode(), / forward)",
+        "-",
+        ratio,
+        "-",
+        True,
+        "x",
+    )
+
+    eom = chain.eom(256, 1000, opts.repeats)["default"]
+    row(
+        "N-link chain, EOM per state, N = 256 (us)",
+        "19 ms (dense)",
+        eom["per_state_s"] * 1e6,
+        "<= 50 us",
+        eom["per_state_s"] <= 50e-6,
+        " us",
+    )
+    long = chain.trajectory(256, None, 3)
+    row(
+        "N-link chain, N = 256, simulate over [0, 1] (s)",
+        "113 s",
+        long["median_s"],
+        "<= 2 s",
+        long["median_s"] <= 2,
+        " s",
+    )
+    small = chain.trajectory(4, None, opts.repeats)
+    lapack = chain.trajectory(4, cjax.FullKKTLU(unroll_max=0), opts.repeats)
+    ratio = small["median_s"] / lapack["median_s"]
+    compile_ratio = (small["trace_lower_s"] + small["compile_s"]) / (
+        lapack["trace_lower_s"] + lapack["compile_s"]
+    )
+    row(
+        "N-link chain, N = 4, one trajectory: default / LAPACK LU, run",
+        "2.6x",
+        ratio,
+        "<= 1x",
+        ratio <= 1.05,
+        "x",
+    )
+    row("  same, compile", "4.3x", compile_ratio, "<= 1x", compile_ratio <= 1.05, "x")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--out", default=os.path.join("benchmarks", "results"))
+    opts = parser.parse_args()
+    rows = measure(opts)
+    os.makedirs(opts.out, exist_ok=True)
+    path = os.path.join(opts.out, "targets.json")
+    with open(path, "w") as f:
+        json.dump({"machine": machine_info(), "rows": rows}, f, indent=1,
+                  default=lambda x: np.asarray(x).tolist())  # fmt: skip
+    print("\n| figure | before (issue) | now | target | met |\n|---|---|---:|---|---|")
+    for r in rows:
+        print(f"| {r['figure']} | {r['before']} | {r['value']:.3g}{r['unit']} | "
+              f"{r['target']} | {'yes' if r['met'] else '**no**'} |")  # fmt: skip
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
