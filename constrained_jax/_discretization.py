@@ -228,8 +228,22 @@ def _vector(array: np.ndarray) -> Float[Array, " N"]:
     return jnp.asarray(array, default_float_dtype())
 
 
-def _matmul(a: Array, b: Array) -> Array:
+def _tables_in_numpy() -> bool:
+    """Whether the tables are built by NumPy in float64 at trace time and rounded
+    (float32 runs: built in float32 arithmetic the differentiation matrix loses
+    about `N^2 eps`, enough to stall Newton on the sphere geodesic), or by JAX inside
+    the program (float64 runs: no size-`N^2` constants in the program)."""
+    return default_float_dtype() != np.float64
+
+
+def _as_table(x) -> Array:
+    return jnp.asarray(x, default_float_dtype())
+
+
+def _matmul(a, b) -> Array:
     """A product of tables at full precision (never TF32 or bfloat16 passes)."""
+    if isinstance(a, np.ndarray) and isinstance(b, np.ndarray):
+        return a @ b
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
@@ -238,26 +252,52 @@ def _table_key(singular) -> str:
     return "quadrature_" + "".join("1" if flag else "0" for flag in singular) + "_"
 
 
+def _differentiation_matrix(xp, nodes, weights):
+    nodes, weights = xp.asarray(nodes), xp.asarray(weights)
+    diagonal = xp.eye(nodes.shape[0], dtype=bool)
+    diff = xp.where(diagonal, 1.0, nodes[:, None] - nodes[None, :])
+    d = xp.where(diagonal, 0.0, (weights[None, :] / weights[:, None]) / diff)
+    return xp.where(diagonal, -xp.sum(d, axis=1, keepdims=True), d)
+
+
+def _interpolation_matrix(xp, nodes, weights, points):
+    nodes, weights, points = xp.asarray(nodes), xp.asarray(weights), xp.asarray(points)
+    diff = points[:, None] - nodes[None, :]
+    exact = diff == 0
+    terms = weights[None, :] / xp.where(exact, 1.0, diff)
+    p = terms / xp.sum(terms, axis=1, keepdims=True)
+    hit = xp.any(exact, axis=1, keepdims=True)
+    return xp.where(hit, exact.astype(p.dtype), p)
+
+
+def _table_inputs(*arrays):
+    """`(module, arrays)`: NumPy float64 arrays for a float32 run, JAX arrays of the
+    default float dtype otherwise (see `_tables_in_numpy`)."""
+    if _tables_in_numpy():
+        return np, [np.asarray(a, np.float64) for a in arrays]
+    return jnp, [_vector(a) for a in arrays]
+
+
 def differentiation_matrix(nodes: np.ndarray, weights: np.ndarray) -> Array:
     """`D_ij = l_j'(x_i)` for the Lagrange basis through `nodes`."""
-    nodes, weights = _vector(nodes), _vector(weights)
-    diagonal = jnp.eye(nodes.shape[0], dtype=bool)
-    diff = jnp.where(diagonal, 1.0, nodes[:, None] - nodes[None, :])
-    d = jnp.where(diagonal, 0.0, (weights[None, :] / weights[:, None]) / diff)
-    return jnp.where(diagonal, -jnp.sum(d, axis=1, keepdims=True), d)
+    xp, arrays = _table_inputs(nodes, weights)
+    return _as_table(_differentiation_matrix(xp, *arrays))
 
 
 def interpolation_matrix(
     nodes: np.ndarray, weights: np.ndarray, points: np.ndarray
 ) -> Array:
     """`P_qj = l_j(t_q)`: values at `points` of the Lagrange basis (barycentric)."""
-    nodes, weights, points = _vector(nodes), _vector(weights), _vector(points)
-    diff = points[:, None] - nodes[None, :]
-    exact = diff == 0
-    terms = weights[None, :] / jnp.where(exact, 1.0, diff)
-    p = terms / jnp.sum(terms, axis=1, keepdims=True)
-    hit = jnp.any(exact, axis=1, keepdims=True)
-    return jnp.where(hit, exact.astype(p.dtype), p)
+    xp, arrays = _table_inputs(nodes, weights, points)
+    return _as_table(_interpolation_matrix(xp, *arrays))
+
+
+def _value_and_derivative_tables(nodes, weights, points):
+    """`(P, P D)` at full precision (see `_tables_in_numpy`)."""
+    xp, (n, w, pts) = _table_inputs(nodes, weights, points)
+    p = _interpolation_matrix(xp, n, w, pts)
+    pd = _matmul(p, _differentiation_matrix(xp, n, w))
+    return _as_table(p), _as_table(pd)
 
 
 def _barycentric(nodes, weights, values, x):
@@ -338,8 +378,8 @@ class Chebyshev(AbstractDiscretization):
             return tq, wq, self.tables[key + "p"], self.tables[key + "pd"]
         t = self.reference_nodes()
         bw = self._reference_weights()
-        p = interpolation_matrix(t, bw, tq)
-        return tq, wq, p, _matmul(p, differentiation_matrix(t, bw))
+        p, pd = _value_and_derivative_tables(t, bw, tq)
+        return tq, wq, p, pd
 
     def _interior_matrix(self):
         """Values at the (unclustered) Gauss points of the Lagrange basis of the

@@ -142,7 +142,10 @@ def test_balanced_on_top_never_releases():
     )
     assert not traj.release.released
     assert traj.release.time == 3.0
-    np.testing.assert_array_equal(traj.q[-1], q0)
+    # theta1 and theta2 stay exactly put; r to round-off (XLA's fused arithmetic in
+    # the compiled structured solve leaves rddot ~ 3e-16 instead of an exact 0).
+    np.testing.assert_array_equal(traj.q[-1, 1:], q0[1:])
+    np.testing.assert_allclose(traj.q[-1], q0, rtol=0, atol=4 * np.finfo(float).eps)
     np.testing.assert_allclose(traj.multipliers[-1, 0], args["M"] * args["g"])
 
 
