@@ -13,6 +13,8 @@ CPU), so the program grows like the number of levels, not like the size.
 import functools
 from typing import NamedTuple
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -98,6 +100,45 @@ def _elimination_levels(k, edges):
     return levels, sorted(fill), neighbours
 
 
+def _band_order(k, edges):
+    """A bandwidth-reducing order of a symmetric pattern: the natural order or the
+    reverse Cuthill-McKee order (breadth first from a node of least degree, component
+    by component), whichever has the smaller bandwidth. Returns the order and its
+    bandwidth (at least 1)."""
+    adjacency = [[] for _ in range(k)]
+    for i, j in edges:
+        adjacency[i].append(j)
+        adjacency[j].append(i)
+    degree = [len(a) for a in adjacency]
+    order, seen = [], [False] * k
+    for start in sorted(range(k), key=lambda i: (degree[i], i)):
+        if seen[start]:
+            continue
+        seen[start], queue, head = True, [start], 0
+        while head < len(queue):
+            v, head = queue[head], head + 1
+            for u in sorted(adjacency[v], key=lambda u: (degree[u], u)):
+                if not seen[u]:
+                    seen[u] = True
+                    queue.append(u)
+        order.extend(queue)
+
+    def bandwidth(order):
+        position = np.empty(k, int)
+        position[np.asarray(order, int)] = np.arange(k)
+        return max([abs(position[i] - position[j]) for i, j in edges] + [1])
+
+    natural, reverse = list(range(k)), order[::-1]
+    if bandwidth(natural) <= bandwidth(reverse):
+        return np.asarray(natural, int), int(bandwidth(natural))
+    return np.asarray(reverse, int), int(bandwidth(reverse))
+
+
+# The largest bandwidth (under the order of `_band_order`) for which `method="auto"`
+# eliminates `S` sequentially (see `SparseSchur`).
+_BAND_MAX = 8
+
+
 class _Plan:
     """The symbolic analysis of `(M, A)` patterns: static index arrays only."""
 
@@ -175,12 +216,32 @@ class _Plan:
                     if r != s_:
                         edges.add((int(s_), int(r)))
                     triples.append((e1, minv_pos[(i, j)], e2, (int(s_), int(r))))
+        # The sequential elimination: per pivot (in the band order), the positions
+        # of its column S[t + i, t], i = 0..w (the zero slot outside the pattern).
+        order, self.band_width = _band_order(k, edges)
+        self.band_order, self.band_inverse = order, np.argsort(order)
+        keys = [(i, i) for i in range(k)] + sorted(edges)
+        position = {key: q for q, key in enumerate(keys)}
+        self.band_index = np.array(
+            [
+                [
+                    position.get(
+                        (min(order[t], order[t + i]), max(order[t], order[t + i])),
+                        len(keys),
+                    )
+                    if t + i < k
+                    else len(keys)
+                    for i in range(self.band_width + 1)
+                ]
+                for t in range(k)
+            ],
+            int,
+        )
         levels, _, neighbours = _elimination_levels(k, edges)
         # The active entries of S (diagonal and edges among the nodes not yet
         # eliminated, `(a, b)` with `a <= b`) are stored compactly level by level,
         # and the active nodes too: every step is a gather, none a scatter (batched
         # scatters are slow on CPU).
-        keys = [(i, i) for i in range(k)] + sorted(edges)
         self.s_keys = keys
         t = np.array([(e1, mi, e2) for e1, mi, e2, _ in triples], int).reshape(-1, 3)
         self.s_a1, self.s_minv, self.s_a2 = t.T
@@ -382,6 +443,43 @@ def _schur_solve(plan, s_values, g, threshold):
     return x, bad
 
 
+def _band_solve(plan, s_values, g, threshold):
+    """Solve `S y = g` by a sequential band `L D L^T` (`lax.scan` over the pivots in
+    the band order, each step the same `w x w` update: for a chain, `w = 1`, the
+    Thomas algorithm); `bad` as in `_schur_solve`."""
+    w = plan.band_width
+    dtype = s_values.dtype
+    padded = jnp.concatenate([s_values, jnp.zeros((1,), dtype)])
+    columns = padded[plan.band_index]  # (k, w + 1)
+    last = jnp.zeros((1,), dtype)
+
+    def factor(carry, inputs):
+        # `update`, `z`: the previous pivots' Schur updates of S and corrections of
+        # g on the next w nodes.
+        update, z = carry
+        column, g_t = inputs
+        column = column - jnp.concatenate([update[:, 0], last])
+        small = column[0] <= threshold
+        d = jnp.where(small, 1.0, column[0])
+        lower = column[1:] / d
+        y = g_t - z[0]
+        update = jnp.pad(update[1:, 1:], ((0, 1), (0, 1)))
+        update = update + d * lower[:, None] * lower[None, :]
+        z = jnp.concatenate([z[1:], last]) + lower * y
+        return (update, z), (d, lower, y, small)
+
+    init = (jnp.zeros((w, w), dtype), jnp.zeros((w,), dtype))
+    _, (d, lower, y, small) = jax.lax.scan(factor, init, (columns, g[plan.band_order]))
+
+    def back(window, inputs):
+        d, lower, y = inputs
+        x = y / d - jnp.dot(lower, window)
+        return jnp.concatenate([x[None], window[:-1]]), x
+
+    _, x = jax.lax.scan(back, jnp.zeros((w,), dtype), (d, lower, y), reverse=True)
+    return x[plan.band_inverse], jnp.any(small)
+
+
 class SparseSchur(AbstractSaddlePointSolver):
     """The range-space method for a block-diagonal `M` and a sparse `A`, in `O(N)`
     for chains and trees:
@@ -425,6 +523,8 @@ class SparseSchur(AbstractSaddlePointSolver):
     algorithm by multiple elimination", *ACM TOMS* 11 (1985).
     """
 
+    method: str = eqx.field(default="auto", static=True)
+
     def solve(self, mass, jac, rhs, bias):
         if not (isinstance(mass, SparseMatrix) and isinstance(jac, SparseMatrix)):
             return FullKKTLU(unroll_max=0).solve(
@@ -453,7 +553,18 @@ class SparseSchur(AbstractSaddlePointSolver):
             )
             g = -bias - _spmv(a_values, plan.a_cols, u, plan.a_by_row)
             threshold = 10 * k * eps * jnp.max(jnp.abs(s_values))
-            lam, bad_s = _schur_solve(plan, s_values, g, threshold)
+            method = self.method
+            if method == "auto":
+                method = "scan" if plan.band_width <= _BAND_MAX else "levels"
+            if method == "scan":
+                lam, bad_s = _band_solve(plan, s_values, g, threshold)
+            elif method == "levels":
+                lam, bad_s = _schur_solve(plan, s_values, g, threshold)
+            else:
+                raise ValueError(
+                    f"SparseSchur(method={method!r}): expected 'auto', 'levels' or "
+                    "'scan'."
+                )
             bad = bad | bad_s
             at_lam = _spmv(a_values, plan.a_rows, lam, plan.a_by_col)
             x = u + _apply_blocks(plan, minv, at_lam)
