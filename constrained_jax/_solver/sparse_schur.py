@@ -463,21 +463,27 @@ def _band_solve(plan, s_values, g, threshold):
         d = jnp.where(small, 1.0, column[0])
         lower = column[1:] / d
         y = g_t - z[0]
-        update = jnp.pad(update[1:, 1:], ((0, 1), (0, 1)))
-        update = update + d * lower[:, None] * lower[None, :]
-        z = jnp.concatenate([z[1:], last]) + lower * y
+        update = d * lower[:, None] * lower[None, :]
+        z = lower * y
+        if w > 1:  # the next w - 1 nodes' updates move up one place
+            update = update + jnp.pad(carry[0][1:, 1:], ((0, 1), (0, 1)))
+            z = z + jnp.concatenate([carry[1][1:], last])
         return (update, z), (d, lower, y, small)
 
+    natural = np.array_equal(plan.band_order, np.arange(len(plan.band_order)))
     init = (jnp.zeros((w, w), dtype), jnp.zeros((w,), dtype))
-    _, (d, lower, y, small) = jax.lax.scan(factor, init, (columns, g[plan.band_order]))
+    inputs = (columns, g if natural else g[plan.band_order])
+    _, (d, lower, y, small) = jax.lax.scan(factor, init, inputs)
 
     def back(window, inputs):
         d, lower, y = inputs
-        x = y / d - jnp.dot(lower, window)
-        return jnp.concatenate([x[None], window[:-1]]), x
+        x = y / d - jnp.sum(lower * window)
+        if w > 1:
+            return jnp.concatenate([x[None], window[:-1]]), x
+        return x[None], x
 
     _, x = jax.lax.scan(back, jnp.zeros((w,), dtype), (d, lower, y), reverse=True)
-    return x[plan.band_inverse], jnp.any(small)
+    return (x if natural else x[plan.band_inverse]), jnp.any(small)
 
 
 class SparseSchur(AbstractSaddlePointSolver):
@@ -575,15 +581,12 @@ class SparseSchur(AbstractSaddlePointSolver):
         size = _spmv(abs_m, plan.m_cols, jnp.abs(x), plan.m_rows) + jnp.abs(rhs)
         if k > 0:
             abs_a = jnp.abs(a_values)
-            size = size + _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col)
+            at_lam_size = _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col)
+            size = size + at_lam_size
         ok = jnp.max(jnp.abs(residual)) <= tol * jnp.max(size)
         if k > 0:
             residual = _spmv(a_values, plan.a_cols, x, plan.a_by_row) + bias
-            x_size = _apply_blocks(
-                plan,
-                jnp.abs(minv),
-                jnp.abs(rhs) + _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col),
-            )
+            x_size = _apply_blocks(plan, jnp.abs(minv), jnp.abs(rhs) + at_lam_size)
             size = _spmv(abs_a, plan.a_cols, x_size, plan.a_by_row) + jnp.abs(bias)
             ok = ok & (jnp.max(jnp.abs(residual)) <= tol * jnp.max(size))
         finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(lam))
