@@ -10,6 +10,11 @@ against `SparseSchur(method="levels")`.
 
     python benchmarks/sparse_schur.py [N ...]
     python benchmarks/sparse_schur.py --eom [N]
+    python benchmarks/sparse_schur.py --band
+
+`--band`: `method="levels"` against `method="scan"` (vmap over 200 states, compile)
+on patterns of growing bandwidth: 2D trusses (particle j joined to j - 1 .. j - r)
+and r-ary trees of rods, to check `method="auto"`'s rule (scan up to bandwidth 8).
 """
 
 import sys
@@ -237,7 +242,67 @@ def eom(num_links):
         )
 
 
+def rods_problem(num, pairs, batch):
+    """Unit masses in 2D joined by the rods `pairs` (`-1`: the fixed pivot), random
+    positions; a batch of scaled copies."""
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(num, 2))
+    n, k = 2 * num, len(pairs)
+    jac = np.zeros((k, n))
+    for row, (a, b) in enumerate(pairs):
+        d = points[a] - (points[b] if b >= 0 else 0)
+        jac[row, 2 * a : 2 * a + 2] = d
+        if b >= 0:
+            jac[row, 2 * b : 2 * b + 2] = -d
+    pm, pa = np.eye(n) != 0, jac != 0
+
+    def make(s):
+        m = SparseMatrix.from_dense(jnp.eye(n) * (1 + 0.1 * s), pm)
+        return m, SparseMatrix.from_dense(jnp.asarray(jac) * (1 + 0.01 * s), pa)
+
+    ms, js = jax.vmap(make)(jnp.linspace(0, 1, batch))
+    return ms, js, jnp.ones((batch, n)), jnp.ones((batch, k))
+
+
+def band(batch=200):
+    num = 127
+    cases = {
+        f"truss r={r}": [(j, j - i) for j in range(num) for i in range(1, r + 1)]
+        for r in (1, 2)
+    }
+    cases.update(
+        {f"{r}-ary tree": [(j, (j - 1) // r) for j in range(num)] for r in (2, 4)}
+    )
+    for label, pairs in cases.items():
+        pairs = [(a, b) for a, b in pairs if b >= -1]
+        args = rods_problem(num, pairs, batch)
+        m, a = (jax.tree.map(lambda x: x[0], t) for t in args[:2])
+        plan = _plan((m.rows, m.cols, m.shape), (a.rows, a.cols, a.shape))
+        compiled, compile_s = {}, {}
+        for method in ("levels", "scan"):
+
+            def fn(m, a, f, b, method=method):
+                return SparseSchur(method=method).solve(m, a, f, b)
+
+            c, compile_s[method], _ = compile_(jax.vmap(fn), *args)
+            assert not np.any(c(*args)[2])
+            compiled[method] = (c, args)
+        t = alternating(compiled, repeat=5)
+        print(
+            f"{label:12s} k={len(pairs)} bandwidth {plan.band_width:3d} "
+            f"({len(plan.levels)} levels): "
+            + ", ".join(
+                f"{m} {t[m] / batch * 1e6:8.1f} us/state compile {compile_s[m]:5.2f} s"
+                for m in t
+            ),
+            flush=True,
+        )
+
+
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--band"]:
+        band()
+        sys.exit()
     if sys.argv[1:2] == ["--eom"]:
         eom(int(sys.argv[2]) if len(sys.argv) > 2 else 256)
     else:

@@ -515,10 +515,12 @@ class SparseSchur(AbstractSaddlePointSolver):
     in a second one): `O(k w^2)`, a program of fixed size whatever `k`. On a chain
     `w = 1` and it is the Thomas algorithm. `method="auto"` (the default) takes the
     scan where `w <= 8` and the levels otherwise (a star, whose hub is coupled to
-    every row, or a wide tree): measured on the chain (`benchmarks/sparse_schur.py`,
-    CPU) the scan compiles 2 to 10 times faster (0.8 s against 3.0 s at `N = 256`,
-    1.0 s against 11.5 s at `N = 1024`) and runs as fast or faster, single and
-    batched.
+    every row, or a wide tree), as measured on CPU (`benchmarks/sparse_schur.py`):
+    on the chain the scan compiles 2 to 10 times faster (0.8 s against 3.0 s at
+    `N = 256`, 1.0 s against 11.5 s at `N = 1024`) and runs as fast or faster,
+    single and batched; on a 2D truss of bandwidth 5 it runs 3.6 times faster (the
+    levels degenerate to 130 and take 42 s to compile); on a binary tree
+    (bandwidth 64) it is 60 times slower.
 
     **What it needs.** `M` block-diagonal (after a symmetric permutation) with a
     structurally nonzero diagonal and positive definite blocks, and `A` of full row
