@@ -1,14 +1,26 @@
-"""The structured saddle-point solve (`SparseSchur`) on the N-link chain against the
-dense `FullKKTLU(unroll_max=0)` and a `lax.scan` tridiagonal LDL (Thomas) of the same
-Schur complement: CPU time medians after compilation, single state and vmap over a
-batch, compile time, XLA temp memory; fitted growth exponents.
+"""The structured saddle-point solve (`SparseSchur`, its two eliminations of the Schur
+complement: `method="levels"` and `method="scan"`) on the N-link chain against the
+dense `FullKKTLU(unroll_max=0)` and a hand-written `lax.scan` tridiagonal LDL (Thomas)
+of the same Schur complement: CPU time medians after compilation (variants timed in
+alternating rounds), single state and vmap over a batch, compile time, XLA temp
+memory; fitted growth exponents. With `--eom`: the whole chain EOM
+`jit(vmap(system.solve_accelerations))` over a batch and one `simulate` (Tsit5,
+rtol = atol = 1e-8, t in [0, 1]) at the given N (default 256), default solver choice
+against `SparseSchur(method="levels")`.
 
     python benchmarks/sparse_schur.py [N ...]
+    python benchmarks/sparse_schur.py --eom [N]
+    python benchmarks/sparse_schur.py --band
+
+`--band`: `method="levels"` against `method="scan"` (vmap over 200 states, compile)
+on patterns of growing bandwidth: 2D trusses (particle j joined to j - 1 .. j - r)
+and r-ary trees of rods, to check `method="auto"`'s rule (scan up to bandwidth 8).
 """
 
 import sys
 import time
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +28,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+import constrained_jax as cjax  # noqa: E402
 from constrained_jax._solver.saddle_point import FullKKTLU  # noqa: E402
 from constrained_jax._solver.sparse import SparseMatrix  # noqa: E402
 from constrained_jax._solver.sparse_schur import (  # noqa: E402
@@ -97,62 +110,80 @@ def thomas(mass, jac, rhs, bias):
     return u + _apply_blocks(plan, minv, at_lam), lam
 
 
-def cpu_median(fn, *args, repeat=7):
-    jax.block_until_ready(fn(*args))
-    times = []
-    number = 1
-    while True:
-        t = time.process_time()
-        for _ in range(number):
-            jax.block_until_ready(fn(*args))
-        dt = time.process_time() - t
-        if dt > 0.05 or number > 1e5:
-            break
-        number *= 4
-    for _ in range(repeat):
-        t = time.process_time()
-        for _ in range(number):
-            jax.block_until_ready(fn(*args))
-        times.append((time.process_time() - t) / number)
-    return float(np.median(times))
-
-
-def measure(fn, *args):
+def compile_(fn, *args):
     t = time.process_time()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.process_time() - t
-    temp = compiled.memory_analysis().temp_size_in_bytes
-    return cpu_median(compiled, *args), compile_s, temp
+    jax.block_until_ready(compiled(*args))
+    return compiled, compile_s, compiled.memory_analysis().temp_size_in_bytes
+
+
+def alternating(cases, repeat=7):
+    """CPU time medians of `{name: (compiled, args)}`, timed in alternating rounds
+    (each round times every case once, `number` calls each)."""
+    numbers = {}
+    for name, (fn, args) in cases.items():
+        number = 1
+        while True:
+            t = time.process_time()
+            for _ in range(number):
+                jax.block_until_ready(fn(*args))
+            if time.process_time() - t > 0.02 or number > 1e5:
+                break
+            number *= 4
+        numbers[name] = number
+    times = {name: [] for name in cases}
+    for _ in range(repeat):
+        for name, (fn, args) in cases.items():
+            t = time.process_time()
+            for _ in range(numbers[name]):
+                jax.block_until_ready(fn(*args))
+            times[name].append((time.process_time() - t) / numbers[name])
+    return {name: float(np.median(ts)) for name, ts in times.items()}
 
 
 def main(sizes):
     rows = []
     for num_links in sizes:
         mass, jac, (ms, js, rhs, bias) = problem(num_links, BATCH)
-        one = lambda t: jax.tree.map(lambda v: v[0], t)  # noqa: E731
-        sparse = lambda m, a, f, b: SparseSchur().solve(m, a, f, b)  # noqa: E731
+        one = lambda t: jax.tree.map(lambda x: x[0], t)  # noqa: E731
         dense = lambda m, a, f, b: FullKKTLU(unroll_max=0).solve(m, a, f, b)  # noqa: E731
-        variants = {"sparse": (sparse, ms, js), "scan": (thomas, ms, js)}
+        levels = lambda m, a, f, b: SparseSchur(method="levels").solve(m, a, f, b)  # noqa: E731
+        scan = lambda m, a, f, b: SparseSchur(method="scan").solve(m, a, f, b)  # noqa: E731
+        variants = {
+            "levels": (levels, ms, js),
+            "scan": (scan, ms, js),
+            "thomas": (thomas, ms, js),
+        }
         if num_links <= 64:
             todense = jax.vmap(lambda x: x.todense())  # noqa: E731
             variants["dense"] = (dense, todense(ms), todense(js))
         elif num_links <= 1024:
             variants["dense"] = (dense, mass[None], jac[None])
+        single, batched = {}, {}
         for name, (fn, m, a) in variants.items():
-            single = measure(fn, one(m), one(a), rhs[0], bias[0])
+            args = (one(m), one(a), rhs[0], bias[0])
+            single[name] = (*compile_(fn, *args), args)
             if name != "dense" or num_links <= 64:
-                batched = measure(jax.vmap(fn), m, a, rhs, bias)
+                args = (m, a, rhs, bias)
+                batched[name] = (*compile_(jax.vmap(fn), *args), args)
+        t_single = alternating({k: (v[0], v[3]) for k, v in single.items()})
+        t_batched = alternating({k: (v[0], v[3]) for k, v in batched.items()})
+        for name in variants:
+            s1 = (t_single[name], *single[name][1:3])
+            if name in batched:
+                s2 = (t_batched[name], *batched[name][1:3])
             else:
-                batched = (float("nan"),) * 3
-            rows.append((num_links, name, *single, *batched))
+                s2 = (float("nan"),) * 3
+            rows.append((num_links, name, *s1, *s2))
             print(
-                f"N={num_links:5d} {name:6s} single {single[0] * 1e6:10.1f} us "
-                f"compile {single[1]:6.2f} s temp {single[2] / 1e6:9.3f} MB | "
-                f"vmap{BATCH} {batched[0] / BATCH * 1e6:8.2f} us/state "
-                f"compile {batched[1]:6.2f} s temp {batched[2] / 1e6:9.3f} MB",
+                f"N={num_links:5d} {name:6s} single {s1[0] * 1e6:10.1f} us "
+                f"compile {s1[1]:6.2f} s temp {s1[2] / 1e6:9.3f} MB | "
+                f"vmap{BATCH} {s2[0] / BATCH * 1e6:8.2f} us/state "
+                f"compile {s2[1]:6.2f} s temp {s2[2] / 1e6:9.3f} MB",
                 flush=True,
             )
-    for name in ("sparse", "scan", "dense"):
+    for name in ("levels", "scan", "thomas", "dense"):
         for label, cols in (("single", (2, 3, 4)), ("vmap", (5, 6, 7))):
             sub = [r for r in rows if r[1] == name and np.isfinite(r[cols[0]])]
             if len(sub) >= 2:
@@ -166,5 +197,113 @@ def main(sizes):
                 )
 
 
+def eom(num_links):
+    """The whole chain EOM over a batch and one trajectory, per solver choice."""
+    args = chain.default_args()
+    thetas = jnp.linspace(-1.0, 1.0, BATCH)
+    q, qd = jax.vmap(lambda th: chain.state(num_links, th, args, 0.5))(thetas)
+    q0, qd0 = chain.state(num_links, 0.5, args)
+    choices = {
+        "default": chain.system(),
+        "levels": chain.system(saddle_point_solver=SparseSchur(method="levels")),
+    }
+    eoms, sims = {}, {}
+    for name, system in choices.items():
+
+        def accelerations(q, qd, system=system):
+            return system.solve_accelerations(q, qd, 0.0, args)
+
+        def run(q0, qd0, system=system):
+            traj = cjax.simulate(
+                system,
+                (0.0, 1.0),
+                q0,
+                qd0,
+                args,
+                solver=diffrax.Tsit5(),
+                stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
+            )
+            return traj.q[-1], traj.stats["num_steps"]
+
+        compiled, compile_s, _ = compile_(jax.vmap(accelerations), q, qd)
+        assert not np.any(compiled(q, qd)[2])
+        eoms[name] = (compiled, (q, qd), compile_s)
+        compiled, compile_s, _ = compile_(run, q0, qd0)
+        sims[name] = (compiled, (q0, qd0), compile_s, int(compiled(q0, qd0)[1]))
+    t_eom = alternating({k: v[:2] for k, v in eoms.items()}, repeat=5)
+    t_sim = alternating({k: v[:2] for k, v in sims.items()}, repeat=3)
+    for name in choices:
+        print(
+            f"N={num_links} {name:8s} EOM vmap{BATCH} "
+            f"{t_eom[name] / BATCH * 1e6:8.2f} us/state (compile "
+            f"{eoms[name][2]:5.2f} s) | simulate {t_sim[name]:7.3f} s, "
+            f"{sims[name][3]} steps (compile {sims[name][2]:5.2f} s)",
+            flush=True,
+        )
+
+
+def rods_problem(num, pairs, batch):
+    """Unit masses in 2D joined by the rods `pairs` (`-1`: the fixed pivot), random
+    positions; a batch of scaled copies."""
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(num, 2))
+    n, k = 2 * num, len(pairs)
+    jac = np.zeros((k, n))
+    for row, (a, b) in enumerate(pairs):
+        d = points[a] - (points[b] if b >= 0 else 0)
+        jac[row, 2 * a : 2 * a + 2] = d
+        if b >= 0:
+            jac[row, 2 * b : 2 * b + 2] = -d
+    pm, pa = np.eye(n) != 0, jac != 0
+
+    def make(s):
+        m = SparseMatrix.from_dense(jnp.eye(n) * (1 + 0.1 * s), pm)
+        return m, SparseMatrix.from_dense(jnp.asarray(jac) * (1 + 0.01 * s), pa)
+
+    ms, js = jax.vmap(make)(jnp.linspace(0, 1, batch))
+    return ms, js, jnp.ones((batch, n)), jnp.ones((batch, k))
+
+
+def band(batch=200):
+    num = 127
+    cases = {
+        f"truss r={r}": [(j, j - i) for j in range(num) for i in range(1, r + 1)]
+        for r in (1, 2)
+    }
+    cases.update(
+        {f"{r}-ary tree": [(j, (j - 1) // r) for j in range(num)] for r in (2, 4)}
+    )
+    for label, pairs in cases.items():
+        pairs = [(a, b) for a, b in pairs if b >= -1]
+        args = rods_problem(num, pairs, batch)
+        m, a = (jax.tree.map(lambda x: x[0], t) for t in args[:2])
+        plan = _plan((m.rows, m.cols, m.shape), (a.rows, a.cols, a.shape))
+        compiled, compile_s = {}, {}
+        for method in ("levels", "scan"):
+
+            def fn(m, a, f, b, method=method):
+                return SparseSchur(method=method).solve(m, a, f, b)
+
+            c, compile_s[method], _ = compile_(jax.vmap(fn), *args)
+            assert not np.any(c(*args)[2])
+            compiled[method] = (c, args)
+        t = alternating(compiled, repeat=5)
+        print(
+            f"{label:12s} k={len(pairs)} bandwidth {plan.band_width:3d} "
+            f"({len(plan.levels)} levels): "
+            + ", ".join(
+                f"{m} {t[m] / batch * 1e6:8.1f} us/state compile {compile_s[m]:5.2f} s"
+                for m in t
+            ),
+            flush=True,
+        )
+
+
 if __name__ == "__main__":
-    main([int(a) for a in sys.argv[1:]] or [4, 16, 64, 256, 1024])
+    if sys.argv[1:2] == ["--band"]:
+        band()
+        sys.exit()
+    if sys.argv[1:2] == ["--eom"]:
+        eom(int(sys.argv[2]) if len(sys.argv) > 2 else 256)
+    else:
+        main([int(a) for a in sys.argv[1:]] or [4, 16, 64, 256, 1024])

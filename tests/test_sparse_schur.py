@@ -10,7 +10,7 @@ import pytest
 
 import constrained_jax as cj
 from constrained_jax._solver.sparse import SparseMatrix
-from constrained_jax._solver.sparse_schur import _plan
+from constrained_jax._solver.sparse_schur import _band_order, _plan
 from constrained_jax.scenes import chain
 
 
@@ -27,8 +27,13 @@ def sparse(matrix, pattern=None):
     return SparseMatrix.from_dense(matrix, pattern)
 
 
-def assert_agrees(mass, jac, rhs, bias, mass_pattern=None, jac_pattern=None):
-    x, lam, singular = jax.jit(cj.SparseSchur().solve)(
+METHODS = pytest.mark.parametrize("method", ["levels", "scan"])
+
+
+def assert_agrees(
+    mass, jac, rhs, bias, mass_pattern=None, jac_pattern=None, method="auto"
+):
+    x, lam, singular = jax.jit(cj.SparseSchur(method=method).solve)(
         sparse(mass, mass_pattern), sparse(jac, jac_pattern), rhs, bias
     )
     x_ref, lam_ref = dense_solve(mass, jac, rhs, bias)
@@ -75,10 +80,11 @@ def chain_problem(num_links, key):
     )
 
 
+@METHODS
 @pytest.mark.parametrize("num_links", [1, 2, 5, 12, 64])
-def test_chain_scene(num_links, getkey):
+def test_chain_scene(num_links, method, getkey):
     """The chain scene's own M (from the Lagrangian) and A at a perturbed state."""
-    assert_agrees(*chain_problem(num_links, getkey()))
+    assert_agrees(*chain_problem(num_links, getkey()), method=method)
 
 
 def test_chain_is_cyclic_reduction(getkey):
@@ -89,24 +95,52 @@ def test_chain_is_cyclic_reduction(getkey):
     assert len(plan.levels) <= math.ceil(math.log2(64)) + 1
 
 
+def test_chain_is_thomas(getkey):
+    """The chain's Schur complement is tridiagonal in the natural order: the
+    sequential elimination is the Thomas algorithm, the default choice."""
+    mass, jac, *_ = chain_problem(64, getkey())
+    m, a = sparse(mass), sparse(jac)
+    plan = _plan((m.rows, m.cols, m.shape), (a.rows, a.cols, a.shape))
+    assert plan.band_width == 1
+    assert np.array_equal(plan.band_order, np.arange(64))
+
+
+def test_band_order_star():
+    """A star numbered hub first (bandwidth 8 in the natural order): reverse
+    Cuthill-McKee starts from a leaf, so the hub comes second to last."""
+    order, width = _band_order(9, [(0, j) for j in range(1, 9)])
+    assert sorted(order) == list(range(9))
+    assert width == 7 and order[7] == 0
+
+
+def test_unknown_method(getkey):
+    mass, jac, rhs, bias = chain_problem(3, getkey())
+    with pytest.raises(ValueError, match="method"):
+        cj.SparseSchur(method="qr").solve(sparse(mass), sparse(jac), rhs, bias)
+
+
+@METHODS
 @pytest.mark.parametrize("seed", range(4))
-def test_random_trees(seed):
+def test_random_trees(seed, method):
     rng = np.random.default_rng(seed)
     num = int(rng.integers(2, 13))
     parent = [-1] + [int(rng.integers(-1, j)) for j in range(1, num)]
     assert_agrees(
-        *tree_problem(parent, jax.random.key(seed), dim=int(rng.integers(2, 4)))
+        *tree_problem(parent, jax.random.key(seed), dim=int(rng.integers(2, 4))),
+        method=method,
     )
 
 
-def test_star_tree(getkey):
+@METHODS
+def test_star_tree(method, getkey):
     """A hub with many branches (the hub is eliminated last, no fill blow-up)."""
     parent = [-1] + [0] * 6 + [1, 2, 3]
-    assert_agrees(*tree_problem(parent, getkey()))
+    assert_agrees(*tree_problem(parent, getkey()), method=method)
 
 
+@METHODS
 @pytest.mark.parametrize("seed", range(3))
-def test_rigid_bodies(seed):
+def test_rigid_bodies(seed, method):
     """Block-diagonal M with 3x3 blocks (and one point mass), coordinates shuffled, rows
     coupling neighbouring bodies and a branch."""
     rng = np.random.default_rng(seed)
@@ -132,6 +166,7 @@ def test_rigid_bodies(seed):
         jnp.asarray(jac),
         jnp.asarray(rng.normal(size=n)),
         jnp.asarray(rng.normal(size=len(pairs))),
+        method=method,
     )
 
 
@@ -144,13 +179,16 @@ def test_no_constraints(getkey):
     assert jnp.allclose(x, rhs / mass[0, 0], rtol=1e-14)
 
 
-def test_vmap(getkey):
+@METHODS
+def test_vmap(method, getkey):
     problems = [chain_problem(5, getkey()) for _ in range(3)]
     mass, jac, rhs, bias = (jnp.stack(p) for p in zip(*problems, strict=True))
     pattern_m, pattern_a = np.asarray(mass[0]) != 0, np.asarray(jac[0]) != 0
 
     def solve(m, a, f, b):
-        return cj.SparseSchur().solve(sparse(m, pattern_m), sparse(a, pattern_a), f, b)
+        return cj.SparseSchur(method=method).solve(
+            sparse(m, pattern_m), sparse(a, pattern_a), f, b
+        )
 
     x, lam, singular = jax.jit(jax.vmap(solve))(mass, jac, rhs, bias)
     assert not jnp.any(singular)
@@ -160,7 +198,8 @@ def test_vmap(getkey):
         assert jnp.allclose(lam[i], lam_ref, rtol=1e-12, atol=1e-12)
 
 
-def test_gradients(getkey):
+@METHODS
+def test_gradients(method, getkey):
     """Reverse and forward mode through the solve agree with the dense solve's."""
     mass, jac, rhs, bias = chain_problem(6, getkey())
     pattern_m, pattern_a = np.asarray(mass) != 0, np.asarray(jac) != 0
@@ -172,7 +211,7 @@ def test_gradients(getkey):
         return jnp.dot(weights, jnp.concatenate([x, lam]))
 
     def structured(m, a, f, b):
-        x, lam, _ = cj.SparseSchur().solve(
+        x, lam, _ = cj.SparseSchur(method=method).solve(
             sparse(m, pattern_m), sparse(a, pattern_a), f, b
         )
         return x, lam
@@ -193,36 +232,50 @@ def test_gradients(getkey):
     assert jnp.allclose(dot, dot_ref, rtol=1e-10)
 
 
-def _assert_singular(mass, jac, rhs, bias):
-    x, lam, singular = cj.SparseSchur().solve(sparse(mass), sparse(jac), rhs, bias)
+def _assert_singular(mass, jac, rhs, bias, method="auto", mass_pattern=None):
+    x, lam, singular = cj.SparseSchur(method=method).solve(
+        sparse(mass, mass_pattern), sparse(jac), rhs, bias
+    )
     assert singular
     assert jnp.all(x == 0) and jnp.all(lam == 0)
 
 
-def test_redundant_constraint(getkey):
+@METHODS
+def test_redundant_constraint(method, getkey):
     """The same rod twice: A rank-deficient, multipliers not unique."""
     mass, jac, rhs, bias = chain_problem(4, getkey())
     jac = jnp.concatenate([jac, jac[2:3]])
-    _assert_singular(mass, jac, rhs, jnp.concatenate([bias, bias[2:3]]))
+    _assert_singular(mass, jac, rhs, jnp.concatenate([bias, bias[2:3]]), method=method)
 
 
-def test_zero_mass_refused(getkey):
+@METHODS
+def test_zero_mass_refused(method, getkey):
     """A mass set to zero at run time (the pattern is the nonzero one)."""
     mass, jac, rhs, bias = chain_problem(4, getkey())
     pattern = np.asarray(mass) != 0
     mass = mass.at[3, 3].set(0.0)
-    x, lam, singular = cj.SparseSchur().solve(
-        sparse(mass, pattern), sparse(jac), rhs, bias
+    _assert_singular(mass, jac, rhs, bias, method=method, mass_pattern=pattern)
+
+
+@METHODS
+def test_nonfinite_refused(method, getkey):
+    """A NaN in A at run time: singular, zeros returned."""
+    mass, jac, rhs, bias = chain_problem(4, getkey())
+    pattern = np.asarray(jac) != 0
+    jac = jac.at[1, 2].set(jnp.nan)
+    x, lam, singular = cj.SparseSchur(method=method).solve(
+        sparse(mass), sparse(jac, pattern), rhs, bias
     )
     assert singular and jnp.all(x == 0) and jnp.all(lam == 0)
 
 
-def test_negative_mass_refused(getkey):
+@METHODS
+def test_negative_mass_refused(method, getkey):
     """An indefinite M: the pivot-free elimination is not trusted (singular), even
     where the KKT matrix is nonsingular."""
     mass, jac, rhs, bias = chain_problem(4, getkey())
     mass = mass.at[5, 5].set(-0.7)
-    _assert_singular(mass, jac, rhs, bias)
+    _assert_singular(mass, jac, rhs, bias, method=method)
     assert abs(jnp.linalg.det(jnp.block([[mass, -jac.T], [jac, jnp.zeros((4, 4))]])))
 
 

@@ -1,7 +1,7 @@
 """The structured saddle-point solve for large systems: a block-diagonal mass matrix
 and a sparse constraint Jacobian, solved by the range-space method with a sparse
-`L D L^T` of the Schur complement in levels of independent pivots
-([`constrained_jax.SparseSchur`][]).
+`L D L^T` of the Schur complement, sequential along a band (`lax.scan`) or in levels
+of independent pivots ([`constrained_jax.SparseSchur`][]).
 
 Everything that depends on the sparsity patterns (the blocks of `M`, the pattern of
 `S = A M^-1 A^T`, the elimination order, its fill and its levels) is planned once, at
@@ -13,6 +13,8 @@ CPU), so the program grows like the number of levels, not like the size.
 import functools
 from typing import NamedTuple
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -98,6 +100,45 @@ def _elimination_levels(k, edges):
     return levels, sorted(fill), neighbours
 
 
+def _band_order(k, edges):
+    """A bandwidth-reducing order of a symmetric pattern: the natural order or the
+    reverse Cuthill-McKee order (breadth first from a node of least degree, component
+    by component), whichever has the smaller bandwidth. Returns the order and its
+    bandwidth (at least 1)."""
+    adjacency = [[] for _ in range(k)]
+    for i, j in edges:
+        adjacency[i].append(j)
+        adjacency[j].append(i)
+    degree = [len(a) for a in adjacency]
+    order, seen = [], [False] * k
+    for start in sorted(range(k), key=lambda i: (degree[i], i)):
+        if seen[start]:
+            continue
+        seen[start], queue, head = True, [start], 0
+        while head < len(queue):
+            v, head = queue[head], head + 1
+            for u in sorted(adjacency[v], key=lambda u: (degree[u], u)):
+                if not seen[u]:
+                    seen[u] = True
+                    queue.append(u)
+        order.extend(queue)
+
+    def bandwidth(order):
+        position = np.empty(k, int)
+        position[np.asarray(order, int)] = np.arange(k)
+        return max([abs(position[i] - position[j]) for i, j in edges] + [1])
+
+    natural, reverse = list(range(k)), order[::-1]
+    if bandwidth(natural) <= bandwidth(reverse):
+        return np.asarray(natural, int), int(bandwidth(natural))
+    return np.asarray(reverse, int), int(bandwidth(reverse))
+
+
+# The largest bandwidth (under the order of `_band_order`) for which `method="auto"`
+# eliminates `S` sequentially (see `SparseSchur`).
+_BAND_MAX = 8
+
+
 class _Plan:
     """The symbolic analysis of `(M, A)` patterns: static index arrays only."""
 
@@ -175,12 +216,32 @@ class _Plan:
                     if r != s_:
                         edges.add((int(s_), int(r)))
                     triples.append((e1, minv_pos[(i, j)], e2, (int(s_), int(r))))
+        # The sequential elimination: per pivot (in the band order), the positions
+        # of its column S[t + i, t], i = 0..w (the zero slot outside the pattern).
+        order, self.band_width = _band_order(k, edges)
+        self.band_order, self.band_inverse = order, np.argsort(order)
+        keys = [(i, i) for i in range(k)] + sorted(edges)
+        position = {key: q for q, key in enumerate(keys)}
+        self.band_index = np.array(
+            [
+                [
+                    position.get(
+                        (min(order[t], order[t + i]), max(order[t], order[t + i])),
+                        len(keys),
+                    )
+                    if t + i < k
+                    else len(keys)
+                    for i in range(self.band_width + 1)
+                ]
+                for t in range(k)
+            ],
+            int,
+        )
         levels, _, neighbours = _elimination_levels(k, edges)
         # The active entries of S (diagonal and edges among the nodes not yet
         # eliminated, `(a, b)` with `a <= b`) are stored compactly level by level,
         # and the active nodes too: every step is a gather, none a scatter (batched
         # scatters are slow on CPU).
-        keys = [(i, i) for i in range(k)] + sorted(edges)
         self.s_keys = keys
         t = np.array([(e1, mi, e2) for e1, mi, e2, _ in triples], int).reshape(-1, 3)
         self.s_a1, self.s_minv, self.s_a2 = t.T
@@ -382,6 +443,49 @@ def _schur_solve(plan, s_values, g, threshold):
     return x, bad
 
 
+def _band_solve(plan, s_values, g, threshold):
+    """Solve `S y = g` by a sequential band `L D L^T` (`lax.scan` over the pivots in
+    the band order, each step the same `w x w` update: for a chain, `w = 1`, the
+    Thomas algorithm); `bad` as in `_schur_solve`."""
+    w = plan.band_width
+    dtype = s_values.dtype
+    padded = jnp.concatenate([s_values, jnp.zeros((1,), dtype)])
+    columns = padded[plan.band_index]  # (k, w + 1)
+    last = jnp.zeros((1,), dtype)
+
+    def factor(carry, inputs):
+        # `update`, `z`: the previous pivots' Schur updates of S and corrections of
+        # g on the next w nodes.
+        update, z = carry
+        column, g_t = inputs
+        column = column - jnp.concatenate([update[:, 0], last])
+        small = column[0] <= threshold
+        d = jnp.where(small, 1.0, column[0])
+        lower = column[1:] / d
+        y = g_t - z[0]
+        update = d * lower[:, None] * lower[None, :]
+        z = lower * y
+        if w > 1:  # the next w - 1 nodes' updates move up one place
+            update = update + jnp.pad(carry[0][1:, 1:], ((0, 1), (0, 1)))
+            z = z + jnp.concatenate([carry[1][1:], last])
+        return (update, z), (d, lower, y, small)
+
+    natural = np.array_equal(plan.band_order, np.arange(len(plan.band_order)))
+    init = (jnp.zeros((w, w), dtype), jnp.zeros((w,), dtype))
+    inputs = (columns, g if natural else g[plan.band_order])
+    _, (d, lower, y, small) = jax.lax.scan(factor, init, inputs)
+
+    def back(window, inputs):
+        d, lower, y = inputs
+        x = y / d - jnp.sum(lower * window)
+        if w > 1:
+            return jnp.concatenate([x[None], window[:-1]]), x
+        return x[None], x
+
+    _, x = jax.lax.scan(back, jnp.zeros((w,), dtype), (d, lower, y), reverse=True)
+    return (x if natural else x[plan.band_inverse]), jnp.any(small)
+
+
 class SparseSchur(AbstractSaddlePointSolver):
     """The range-space method for a block-diagonal `M` and a sparse `A`, in `O(N)`
     for chains and trees:
@@ -403,6 +507,21 @@ class SparseSchur(AbstractSaddlePointSolver):
     elimination without pivoting on a symmetric permutation of positive definite
     matrices, so it is backward stable.
 
+    **Two eliminations of `S`.** `method="levels"` is the levelled elimination above.
+    `method="scan"` is a sequential band `L D L^T`: the natural order of the rows of
+    `A` or the reverse Cuthill-McKee order, whichever has the smaller bandwidth `w`,
+    and one `lax.scan` step per pivot, each the same `w x w` update of a window that
+    slides along the band (forward substitution in the same scan, back substitution
+    in a second one): `O(k w^2)`, a program of fixed size whatever `k`. On a chain
+    `w = 1` and it is the Thomas algorithm. `method="auto"` (the default) takes the
+    scan where `w <= 8` and the levels otherwise (a star, whose hub is coupled to
+    every row, or a wide tree), as measured on CPU (`benchmarks/sparse_schur.py`):
+    on the chain the scan compiles 2 to 10 times faster (0.8 s against 3.0 s at
+    `N = 256`, 1.0 s against 11.5 s at `N = 1024`) and runs as fast or faster,
+    single and batched; on a 2D truss of bandwidth 5 it runs 3.6 times faster (the
+    levels degenerate to 130 and take 42 s to compile); on a binary tree
+    (bandwidth 64) it is 60 times slower.
+
     **What it needs.** `M` block-diagonal (after a symmetric permutation) with a
     structurally nonzero diagonal and positive definite blocks, and `A` of full row
     rank. A pivot of a block of `M` at or below `10 n eps max|M|` (a zero or negative
@@ -422,8 +541,18 @@ class SparseSchur(AbstractSaddlePointSolver):
     cyclic reduction algorithm for block tridiagonal linear systems", *SIAM J. Numer.
     Anal.* 13 (1976); G. H. Golub and C. F. Van Loan, *Matrix Computations*, 4th ed.,
     section 4.5.4 (cyclic reduction). J. W. H. Liu, "Modification of the minimum-degree
-    algorithm by multiple elimination", *ACM TOMS* 11 (1985).
+    algorithm by multiple elimination", *ACM TOMS* 11 (1985). E. Cuthill and J.
+    McKee, "Reducing the bandwidth of sparse symmetric matrices", *Proc. 24th ACM
+    National Conference* (1969).
+
+    **Arguments:**
+
+    - `method`: `"auto"` (default), `"scan"` or `"levels"`: how `S` is eliminated
+        (see above). All three keep the same checks and give the same answers to
+        round-off.
     """
+
+    method: str = eqx.field(default="auto", static=True)
 
     def solve(self, mass, jac, rhs, bias):
         if not (isinstance(mass, SparseMatrix) and isinstance(jac, SparseMatrix)):
@@ -453,7 +582,18 @@ class SparseSchur(AbstractSaddlePointSolver):
             )
             g = -bias - _spmv(a_values, plan.a_cols, u, plan.a_by_row)
             threshold = 10 * k * eps * jnp.max(jnp.abs(s_values))
-            lam, bad_s = _schur_solve(plan, s_values, g, threshold)
+            method = self.method
+            if method == "auto":
+                method = "scan" if plan.band_width <= _BAND_MAX else "levels"
+            if method == "scan":
+                lam, bad_s = _band_solve(plan, s_values, g, threshold)
+            elif method == "levels":
+                lam, bad_s = _schur_solve(plan, s_values, g, threshold)
+            else:
+                raise ValueError(
+                    f"SparseSchur(method={method!r}): expected 'auto', 'levels' or "
+                    "'scan'."
+                )
             bad = bad | bad_s
             at_lam = _spmv(a_values, plan.a_rows, lam, plan.a_by_col)
             x = u + _apply_blocks(plan, minv, at_lam)
@@ -464,15 +604,12 @@ class SparseSchur(AbstractSaddlePointSolver):
         size = _spmv(abs_m, plan.m_cols, jnp.abs(x), plan.m_rows) + jnp.abs(rhs)
         if k > 0:
             abs_a = jnp.abs(a_values)
-            size = size + _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col)
+            at_lam_size = _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col)
+            size = size + at_lam_size
         ok = jnp.max(jnp.abs(residual)) <= tol * jnp.max(size)
         if k > 0:
             residual = _spmv(a_values, plan.a_cols, x, plan.a_by_row) + bias
-            x_size = _apply_blocks(
-                plan,
-                jnp.abs(minv),
-                jnp.abs(rhs) + _spmv(abs_a, plan.a_rows, jnp.abs(lam), plan.a_by_col),
-            )
+            x_size = _apply_blocks(plan, jnp.abs(minv), jnp.abs(rhs) + at_lam_size)
             size = _spmv(abs_a, plan.a_cols, x_size, plan.a_by_row) + jnp.abs(bias)
             ok = ok & (jnp.max(jnp.abs(residual)) <= tol * jnp.max(size))
         finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(lam))
