@@ -67,9 +67,9 @@ def make_system(solver):
 
 def random_states(n_links: int, num: int):
     """Admissible states: link angles `phi ~ U(-1, 1)`, rates `~ N(0, 1)`."""
-    rng = np.random.default_rng(SEED)
-    phi = rng.uniform(-1.0, 1.0, (num, n_links))
-    rate = rng.normal(0.0, 1.0, (num, n_links))
+    # One generator each, so that the first states of batches of any size agree.
+    phi = np.random.default_rng(SEED).uniform(-1.0, 1.0, (num, n_links))
+    rate = np.random.default_rng(SEED + 1).normal(0.0, 1.0, (num, n_links))
     x = np.cumsum(np.sin(phi), axis=1)
     y = -np.cumsum(np.cos(phi), axis=1)
     xd = np.cumsum(np.cos(phi) * rate, axis=1)

@@ -30,7 +30,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._misc import default_float_dtype
-from ._solver.block_tridiagonal import BorderedBlockTridiagonal
+from ._solver.block_tridiagonal import (
+    BorderedBlockTridiagonal,
+    CONSTANT_INDICES_MAX,
+)
 from ._solver.equilibrated_lu import EquilibratedDenseLU
 
 
@@ -228,12 +231,20 @@ def _vector(array: np.ndarray) -> Float[Array, " N"]:
     return jnp.asarray(array, default_float_dtype())
 
 
-def _tables_in_numpy() -> bool:
-    """Whether the tables are built by NumPy in float64 at trace time and rounded
-    (float32 runs: built in float32 arithmetic the differentiation matrix loses
-    about `N^2 eps`, enough to stall Newton on the sphere geodesic), or by JAX inside
-    the program (float64 runs: no size-`N^2` constants in the program)."""
-    return default_float_dtype() != np.float64
+# Up to this many nodes the tables are NumPy constants, as small as the program around
+# them (measured: building Chebyshev(32)'s in the program made a catenary solve 1.26x
+# slower); above, they are built in the program (Chebyshev(2048)'s were 1.1 GB of
+# constants at 35 call sites).
+CONSTANT_TABLES_MAX = 128
+
+
+def _tables_in_numpy(size: int) -> bool:
+    """Whether the tables through `size` nodes are built by NumPy in float64 at trace
+    time and rounded: small tables (`size <= CONSTANT_TABLES_MAX`), and every table
+    of a float32 run (built in float32 arithmetic the differentiation matrix loses
+    about `N^2 eps`, enough to stall Newton on the sphere geodesic). Otherwise JAX
+    builds them inside the program: no size-`N^2` constants."""
+    return size <= CONSTANT_TABLES_MAX or default_float_dtype() != np.float64
 
 
 def _as_table(x) -> Array:
@@ -273,7 +284,7 @@ def _interpolation_matrix(xp, nodes, weights, points):
 def _table_inputs(*arrays):
     """`(module, arrays)`: NumPy float64 arrays for a float32 run, JAX arrays of the
     default float dtype otherwise (see `_tables_in_numpy`)."""
-    if _tables_in_numpy():
+    if _tables_in_numpy(len(arrays[0])):
         return np, [np.asarray(a, np.float64) for a in arrays]
     return jnp, [_vector(a) for a in arrays]
 
@@ -466,6 +477,15 @@ class Chebyshev(AbstractDiscretization):
         through the Chebyshev-Gauss-Lobatto nodes (a discrete cosine transform)."""
         n = self.num_nodes - 1
         # The nodes are ascending, t_j = cos(pi (n - j) / n).
+        if _tables_in_numpy(n + 1):
+            j = np.arange(n + 1)
+            c = np.cos(np.pi * j[:, None] * (n - j)[None, :] / n)
+            w = np.ones(n + 1)
+            w[0] = w[-1] = 0.5
+            c = (2.0 / n) * c * w[None, :]
+            c[0] /= 2
+            c[-1] /= 2
+            return _as_table(c)
         # (Built with jnp, like the matrices above: no (N, N) constant.)
         j = jnp.arange(n + 1, dtype=default_float_dtype())
         c = jnp.cos(jnp.pi * j[:, None] * (n - j)[None, :] / n)
@@ -563,6 +583,8 @@ class PiecewiseLinear(AbstractDiscretization):
         return np.linspace(-1.0, 1.0, self.num_nodes)
 
     def nodes(self, interval):
+        if self.num_nodes <= CONSTANT_INDICES_MAX:  # as constants (see there)
+            return super().nodes(interval)
         # `np.linspace`'s arithmetic, from iota: no (N,) constant in the program.
         xl, xr = interval
         i = jnp.arange(self.num_nodes, dtype=default_float_dtype())

@@ -24,6 +24,7 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .dense_lu import dense_factor, dense_solve, lu_factor_unrolled, lu_solve_unrolled
@@ -84,6 +85,12 @@ def block_tridiagonal_solve(factors, lower, rhs: Float[Array, "N s r"]):
 
     _, u = lax.scan(backward, g0, (g, e), reverse=True)
     return u
+
+
+# Up to this many blocks the probe and index arrays are NumPy constants (gathers with
+# constant indices, as fast as before); above, they are built from iota in the
+# program, so that compile time does not grow with the mesh (13 s at 3e6 nodes).
+CONSTANT_INDICES_MAX = 10_000
 
 
 class BorderedBlockTridiagonal(lx.AbstractLinearSolver):
@@ -162,13 +169,14 @@ class BorderedBlockTridiagonal(lx.AbstractLinearSolver):
         nb, s, k = self.num_blocks, self.num_primal + self.num_dual, self.border
         dtype = structure.dtype
         # Probe vectors: colour (r, j) = position j of every block b = r (mod 3); then
-        # one unit vector per border unknown. (Built from iota, like the indices
-        # below: arrays of size num_blocks are not constants in the program.)
-        r, j, block, col = jnp.ix_(
-            jnp.arange(3), jnp.arange(s), jnp.arange(nb), jnp.arange(s)
+        # one unit vector per border unknown. (Above CONSTANT_INDICES_MAX blocks built
+        # from iota, like the indices below: no size-num_blocks constants.)
+        xp = np if nb <= CONSTANT_INDICES_MAX else jnp
+        r, j, block, col = xp.ix_(
+            xp.arange(3), xp.arange(s), xp.arange(nb), xp.arange(s)
         )
-        colour = ((block % 3 == r) & (col == j)).astype(dtype)
-        probes_blocks = colour.reshape(3 * s, nb, s)
+        colour = ((block % 3 == r) & (col == j)).reshape(3 * s, nb, s)
+        probes_blocks = jnp.asarray(colour, dtype)
         probes = jax.vmap(lambda b: self._from_blocks(b, jnp.zeros((k,), dtype)))(
             probes_blocks
         )
@@ -180,7 +188,7 @@ class BorderedBlockTridiagonal(lx.AbstractLinearSolver):
         outputs = jax.vmap(operator.mv)(probes)  # (3s + k, size)
         out_blocks, out_border = jax.vmap(self._to_blocks)(outputs)
         tri = out_blocks[: 3 * s].reshape(3, s, nb, s)  # [r, col j, block i, row]
-        i = jnp.arange(nb)
+        i = xp.arange(nb)
         # T[i, b][row, j] = tri[b % 3, j, i, row] for b in {i-1, i, i+1}.
         diag = jnp.transpose(tri[i % 3, :, i, :], (0, 2, 1))
         lower = jnp.transpose(tri[(i - 1) % 3, :, i, :], (0, 2, 1))
