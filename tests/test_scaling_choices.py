@@ -173,10 +173,18 @@ def _largest_constant(text: str) -> int:
     [(Chebyshev(24), 64), (PiecewiseLinear(401), 64)],
     ids=["chebyshev", "piecewise_linear"],
 )
-def test_no_table_is_a_program_constant(disc, bound):
-    """`solve_functional` on the catenary: no matrix, node, probe or index array
-    sized by N is embedded in the program (the largest 64-bit constant is a vector
-    of Gauss points, 36 for Chebyshev(24))."""
+def test_no_table_is_a_program_constant(disc, bound, monkeypatch):
+    """`solve_functional` on the catenary, with the size thresholds below which tables
+    and indices stay NumPy constants lowered to 8 (they are 128 nodes and 10,000
+    blocks): no matrix, node, probe or index array sized by N is embedded in the
+    program (the largest 64-bit constant is a vector of Gauss points, 36 for
+    Chebyshev(24))."""
+    from constrained_jax import _discretization
+    from constrained_jax._solver import block_tridiagonal
+
+    monkeypatch.setattr(_discretization, "CONSTANT_TABLES_MAX", 8)
+    monkeypatch.setattr(_discretization, "CONSTANT_INDICES_MAX", 8)
+    monkeypatch.setattr(block_tridiagonal, "CONSTANT_INDICES_MAX", 8)
     fn = lambda length: catenary.solve(length=length, discretization=disc)
     text = jax.jit(fn).lower(jnp.asarray(1.5)).as_text()
     assert _largest_constant(text) <= bound
