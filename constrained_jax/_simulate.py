@@ -245,7 +245,7 @@ def simulate(
     stepsize_controller, consistency_tol = _dtype_defaults(
         stepsize_controller, consistency_tol, dtype
     )
-    adjoint = default_adjoint(adjoint)  # (h12-grad)
+    adjoint = default_adjoint(adjoint)
     return _simulate(
         system,
         jnp.asarray(t0, dtype),
