@@ -278,7 +278,10 @@ def plot(results: dict, path: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", default=os.path.join("benchmarks", "results"))
+    parser.add_argument(
+        "--out",
+        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"),
+    )
     parser.add_argument("--sizes", type=int, nargs="+")
     parser.add_argument("--dense-trajectory-max", type=int, default=32)
     parser.add_argument("--trajectory-max", type=int, default=256)

@@ -185,7 +185,10 @@ def measure(opts) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--out", default=os.path.join("benchmarks", "results"))
+    parser.add_argument(
+        "--out",
+        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"),
+    )
     opts = parser.parse_args()
     rows = measure(opts)
     os.makedirs(opts.out, exist_ok=True)
