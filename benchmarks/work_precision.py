@@ -65,30 +65,15 @@ def runner(name: str, solver, variational: bool):
     system, q0, qd0, args, t1 = scene(name)
 
     def run(setting):
-        if variational:
-            traj = cjax.simulate(
-                system,
-                (0.0, t1),
-                q0,
-                qd0,
-                args,
-                solver=solver,
-                dt0=setting,
-                saveat=SAVE,
-                max_steps=1_000_000,
-            )
-        else:
-            traj = cjax.simulate(
-                system,
-                (0.0, t1),
-                q0,
-                qd0,
-                args,
-                solver=solver,
-                saveat=SAVE,
-                stepsize_controller=diffrax.PIDController(rtol=setting, atol=setting),
-                max_steps=1_000_000,
-            )
+        if variational:  # a fixed step `dt0`
+            options = {"dt0": setting}
+        else:  # a tolerance
+            controller = diffrax.PIDController(rtol=setting, atol=setting)
+            options = {"stepsize_controller": controller}
+        traj = cjax.simulate(
+            system, (0.0, t1), q0, qd0, args, solver=solver, saveat=SAVE,
+            max_steps=1_000_000, **options,
+        )  # fmt: skip
         return traj.q[-1], traj.qd[-1]
 
     return jax.jit(run)

@@ -466,8 +466,12 @@ class LagrangianSystem(eqx.Module):
             "has no inertia and that the constraints leave free (M is singular on "
             "the null space of A, e.g. a massless coordinate with a potential "
             "gradient), or the constraints are redundant. (A direction with no "
-            "inertia and no force is a free gauge and gets zero acceleration.) Check "
-            "the mass matrix and the forces, and remove dependent constraints.",
+            "inertia and no force is a free gauge and gets zero acceleration, except "
+            "with `cjax.SparseSchur`, which the default `cjax.Automatic()` uses for "
+            "systems of more than 6 unknowns with a block-diagonal M and which needs "
+            "every mass pivot nonzero: for a massless coordinate there, pass "
+            "`saddle_point_solver=cjax.FullKKTLU()`.) Check the mass matrix and the "
+            "forces, and remove dependent constraints.",
         )
         return qdd, lam
 

@@ -120,9 +120,21 @@ def test_minres_default_refuses_rather_than_answers_wrong():
 # ---------------------------------------------------------------------------------
 
 
-def test_chebyshev_matrices_are_exact_on_polynomials():
-    """The interpolation and differentiation matrices (built with jnp) reproduce a
-    polynomial of degree N - 1 and its derivative at the Gauss points."""
+@pytest.fixture(params=["numpy constants", "built in the program"])
+def table_path(request, monkeypatch):
+    """Both ways of building tables and node arrays: NumPy constants (small sizes,
+    the default here) and JAX in the program (the size thresholds lowered to 8)."""
+    if request.param == "built in the program":
+        from constrained_jax import _discretization
+
+        monkeypatch.setattr(_discretization, "CONSTANT_TABLES_MAX", 8)
+        monkeypatch.setattr(_discretization, "CONSTANT_INDICES_MAX", 8)
+    return request.param
+
+
+def test_chebyshev_matrices_are_exact_on_polynomials(table_path):
+    """The interpolation and differentiation matrices reproduce a polynomial of
+    degree N - 1 and its derivative at the Gauss points."""
     disc = Chebyshev(9)
     t = disc.reference_nodes()
     coeffs = np.arange(1.0, 10.0) / 7
@@ -150,7 +162,7 @@ def test_tabulated_discretizations_give_the_same_numbers():
             np.testing.assert_allclose(fn(tab), fn(disc), rtol=1e-15, atol=1e-15)
 
 
-def test_piecewise_linear_nodes_are_numpy_linspace():
+def test_piecewise_linear_nodes_are_numpy_linspace(table_path):
     disc = PiecewiseLinear(1001)
     xl, xr = jnp.asarray(-0.3), jnp.asarray(2.0)
     expected = -0.3 + 2.3 * (np.linspace(-1.0, 1.0, 1001) + 1) / 2
