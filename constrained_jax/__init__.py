@@ -1,7 +1,8 @@
 """constrained_jax: constrained extremization, variational problems and mechanics.
 
 Write a function (or a Lagrangian) as plain JAX; the library builds the saddle-point
-(KKT) system by autodiff and solves it. See `README.md` and `DESIGN.md`.
+(KKT) system by autodiff and solves it. See `README.md` and the documentation
+site (`docs/`, its architecture page for the design).
 """
 
 import importlib.metadata

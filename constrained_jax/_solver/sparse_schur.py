@@ -492,9 +492,9 @@ class SparseSchur(AbstractSaddlePointSolver):
 
         S lambda = -b - A M^-1 f,    S = A M^-1 A^T,    x = M^-1 (f + A^T lambda).
 
-    `mass` and `jac` are [`constrained_jax.SparseMatrix`][] (or dense arrays, for
-    which this is dense). At trace time, from their static patterns: the blocks of
-    `M` (the connected components of its pattern), the pattern of `S`, and an
+    `mass` and `jac` are `SparseMatrix` (internal: `_solver/sparse.py`), or dense
+    arrays, for which this is dense. At trace time, from their static patterns: the
+    blocks of `M` (the connected components of its pattern), the pattern of `S`, and an
     elimination order of `S` in levels of independent pivots (multiple minimum
     degree: each level eliminates a maximal independent set of nodes of degree at
     most `max(2, min degree)`). On a chain, whose `S` is tridiagonal, this is odd-even
