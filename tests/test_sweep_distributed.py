@@ -1,0 +1,171 @@
+"""cjax.sweep under `jax.distributed`: two processes on this machine (CPU, two forced
+host devices each) share the chunks through the checkpoint folder and both return
+the one-process result bit for bit; one of them killed after its first chunk, a
+restart of both with the same folder computes only the missing chunks."""
+
+import json
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+
+ROOT = pathlib.Path(__file__).parents[1]
+N, BATCH = 22, 4  # 6 chunks of 4 rows (2 per device), the last one padded
+CHUNKS = 6
+TIMEOUT = 120  # seconds, for any subprocess: the test can never hang
+
+# One process of the sweep: `python -c WORKER process_id port folder out exit_at`
+# (`port` 0: no `jax.distributed`, one process). `fn` goes through a callback that
+# counts the rows it sees (hence the chunks evaluated) and, with `exit_at` > 0,
+# ends the process abruptly (`os._exit`) when its chunk number `exit_at` starts:
+# the chunks before it are on disk, nothing of the others.
+WORKER = textwrap.dedent(
+    """
+    import json, os, sys
+    process_id, port, folder, out, exit_at = sys.argv[1:]
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    if int(port):
+        jax.distributed.initialize(
+            coordinator_address=f"127.0.0.1:{port}",
+            num_processes=2,
+            process_id=int(process_id),
+        )
+    import constrained_jax as cjax
+    assert len(jax.local_devices()) == 2, jax.local_devices()
+    rows = []
+
+    def count(x):
+        if int(exit_at) and sum(rows) >= (int(exit_at) - 1) * 4:
+            os._exit(17)
+        rows.append(x.shape[0])
+        return x
+
+    def fn(p):
+        x = jax.pure_callback(
+            count,
+            jax.ShapeDtypeStruct(p["x"].shape, p["x"].dtype),
+            p["x"],
+            vmap_method="broadcast_all",
+        )
+        y = p["y"]
+        return {"s": jnp.sin(x) * y[0] + jnp.exp(-y[1]), "t": jnp.cumsum(y) * x}
+
+    rng = np.random.default_rng(0)
+    inputs = {"x": rng.normal(size=22), "y": rng.normal(size=(22, 3))}
+    result = cjax.sweep(
+        fn, inputs, batch_size=4, checkpoint=None if folder == "-" else folder
+    )
+    np.savez(out, s=result["s"], t=result["t"])
+    with open(out + ".json", "w") as f:
+        json.dump({"chunks": sum(rows) / 4, "process": jax.process_index(),
+                   "processes": jax.process_count()}, f)
+    """
+)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(process_id, port, folder, out, exit_at=0) -> subprocess.Popen:
+    env = dict(
+        os.environ,
+        JAX_PLATFORMS="cpu",
+        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        TQDM_DISABLE="1",
+        PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+    )
+    args = [str(process_id), str(port), str(folder), str(out), str(exit_at)]
+    return subprocess.Popen(
+        [sys.executable, "-c", WORKER, *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def _finish(procs, timeout=TIMEOUT) -> list[tuple[int, str]]:
+    """Wait for every process (killing all at the deadline): (returncode, output)."""
+    deadline = time.monotonic() + timeout
+    results = []
+    try:
+        for proc in procs:
+            left = max(deadline - time.monotonic(), 1)
+            output, _ = proc.communicate(timeout=left)
+            results.append((proc.returncode, output))
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    return results
+
+
+def _sweep_in_two(folder, out_dir, exit_at=(0, 0)):
+    port = _free_port()
+    procs = [
+        _start(k, port, folder, out_dir / f"out_{k}.npz", exit_at[k]) for k in (0, 1)
+    ]
+    return procs
+
+
+def _result(path):
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    info = json.loads(pathlib.Path(str(path) + ".json").read_text())
+    return arrays, info
+
+
+def _assert_equal(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+def _chunk_files(folder):
+    return {
+        p.name: (p.stat().st_ino, p.stat().st_mtime_ns)
+        for p in sorted(folder.glob("chunk_*.npz"))
+    }
+
+
+@pytest.fixture(scope="module")
+def one_process(tmp_path_factory):
+    """The reference: one process, the same two devices, no checkpoint."""
+    out = tmp_path_factory.mktemp("one") / "out.npz"
+    ((code, output),) = _finish([_start(0, 0, "-", out)])
+    assert code == 0, output
+    arrays, info = _result(out)
+    assert info == {"chunks": CHUNKS, "process": 0, "processes": 1}
+    return arrays
+
+
+def test_two_processes_share_the_chunks(tmp_path, one_process):
+    folder = tmp_path / "ckpt"
+    results = _finish(_sweep_in_two(folder, tmp_path))
+    for code, output in results:
+        assert code == 0, output
+    infos = []
+    for k in (0, 1):
+        arrays, info = _result(tmp_path / f"out_{k}.npz")
+        _assert_equal(arrays, one_process)
+        infos.append(info)
+    # Chunk c is process c % 2's: three each, none twice.
+    assert [i["chunks"] for i in infos] == [3, 3]
+    assert [(i["process"], i["processes"]) for i in infos] == [(0, 2), (1, 2)]
+    assert len(_chunk_files(folder)) == CHUNKS
+    assert not list(folder.glob(".*.tmp"))
