@@ -170,6 +170,18 @@ def sweep(
     0` (nothing to evaluate: filter empty batches out before calling `sweep`),
     `batch_size < 1`, bad `devices`, or a checkpoint folder from a different sweep.
     """
+    if jax.process_count() == 1:
+        return _sweep(fn, inputs, batch_size, devices, checkpoint, progress, None)
+    peers = _Peers()
+    try:
+        return _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers)
+    except BaseException as error:
+        peers.report(error)
+        raise
+
+
+def _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers):
+    """`sweep`; `peers`: the other processes under `jax.distributed`, or `None`."""
     leaves, paths, treedef, n = _check_inputs(inputs)
     batch_size = _check_batch_size(batch_size)
     devices = _check_devices(devices)
@@ -265,7 +277,6 @@ def sweep(
         done[index] = True
         bar.update(1)
 
-    peers = None if processes == 1 else _Peers(store.digest, me)
     try:
         # Chunk `index` is this process's if `index % processes == me`.
         for index in range(me, n_chunks, processes):
@@ -273,10 +284,6 @@ def sweep(
                 evaluate(index)
         if peers is not None:
             peers.collect(store, done, outputs, chunk, n, evaluate, bar)
-    except BaseException as error:
-        if peers is not None:
-            peers.report(error)
-        raise
     finally:
         bar.close()
     return jax.tree.unflatten(out_treedef, outputs)
@@ -701,9 +708,9 @@ class _Peers:
 
     _POLL = (0.02, 1.0)  # seconds between looks at the folder: first, at most
 
-    def __init__(self, digest: str, me: int):
-        self.me = me
-        self.key = f"constrained_jax.sweep/{digest[:16]}/{next(_SWEEPS)}/failed/"
+    def __init__(self):
+        self.me = jax.process_index()
+        self.key = f"constrained_jax.sweep/{next(_SWEEPS)}/failed/"
         try:  # private to JAX: without it a failure is seen by JAX's heartbeat only
             from jax._src import distributed
 

@@ -26,7 +26,8 @@ TIMEOUT = 120  # seconds, for any subprocess: the test can never hang
 # (`port` 0: no `jax.distributed`, one process). `fn` goes through a callback that
 # counts the rows it sees (hence the chunks evaluated) and, with `exit_at` > 0,
 # ends the process abruptly (`os._exit`) when its chunk number `exit_at` starts:
-# the chunks before it are on disk, nothing of the others.
+# the chunks before it are on disk, nothing of the others; `exit_at` < 0: `fn`
+# is another function.
 WORKER = textwrap.dedent(
     """
     import json, os, sys
@@ -41,10 +42,12 @@ WORKER = textwrap.dedent(
         )
     import constrained_jax as cjax
     assert len(jax.local_devices()) == 2, jax.local_devices()
+    rng = np.random.default_rng(0)
+    inputs = {"x": rng.normal(size=22), "y": rng.normal(size=(22, 3))}
     rows = []
 
     def count(x):
-        if int(exit_at) and sum(rows) >= (int(exit_at) - 1) * 4:
+        if int(exit_at) > 0 and sum(rows) >= (int(exit_at) - 1) * 4:
             os._exit(17)
         rows.append(x.shape[0])
         return x
@@ -56,11 +59,11 @@ WORKER = textwrap.dedent(
             p["x"],
             vmap_method="broadcast_all",
         )
+        if int(exit_at) < 0:  # another fn
+            x = 2 * x
         y = p["y"]
         return {"s": jnp.sin(x) * y[0] + jnp.exp(-y[1]), "t": jnp.cumsum(y) * x}
 
-    rng = np.random.default_rng(0)
-    inputs = {"x": rng.normal(size=22), "y": rng.normal(size=(22, 3))}
     result = cjax.sweep(
         fn, inputs, batch_size=4, checkpoint=None if folder == "-" else folder
     )
@@ -169,3 +172,70 @@ def test_two_processes_share_the_chunks(tmp_path, one_process):
     assert [(i["process"], i["processes"]) for i in infos] == [(0, 2), (1, 2)]
     assert len(_chunk_files(folder)) == CHUNKS
     assert not list(folder.glob(".*.tmp"))
+
+
+def test_killed_process_resumes(tmp_path, one_process):
+    """Process 1 dies (`os._exit`) as its second chunk starts; process 0 finishes its
+    own chunks and waits for the others, killed then. Both restarted with the same
+    folder: only the two lost chunks are computed, the finished files are left as
+    they were, and both return the one-process result bit for bit."""
+    folder = tmp_path / "ckpt"
+    first, second = _sweep_in_two(folder, tmp_path, exit_at=(0, 2))
+    try:
+        ((code, output),) = _finish([second])
+        assert code == 17, output
+        deadline = time.monotonic() + TIMEOUT
+        while set(_chunk_files(folder)) != {f"chunk_{c:06d}.npz" for c in (0, 1, 2, 4)}:
+            assert first.poll() is None, first.communicate()[0]
+            assert time.monotonic() < deadline, _chunk_files(folder)
+            time.sleep(0.05)
+        time.sleep(0.5)
+        assert first.poll() is None  # waiting for chunks 3 and 5, not returning
+        first.send_signal(signal.SIGKILL)
+    finally:
+        _finish([first])
+    assert first.returncode == -signal.SIGKILL
+    before = _chunk_files(folder)
+
+    results = _finish(_sweep_in_two(folder, tmp_path))
+    for code, output in results:
+        assert code == 0, output
+    infos = []
+    for k in (0, 1):
+        arrays, info = _result(tmp_path / f"out_{k}.npz")
+        _assert_equal(arrays, one_process)
+        infos.append(info["chunks"])
+    assert infos == [0, 2]  # chunks 3 and 5, by process 1; nothing recomputed
+    after = _chunk_files(folder)
+    assert len(after) == CHUNKS
+    assert {k: after[k] for k in before} == before
+    assert not list(folder.glob(".*.tmp"))
+
+
+def test_a_failing_process_stops_the_others(tmp_path):
+    """One process raises (here: it sweeps another `fn`, so the folder's manifest,
+    written by the other, refuses it): the other process, its own chunks done,
+    raises too (told through JAX's coordination service) instead of waiting for
+    chunks that will not come."""
+    folder = tmp_path / "ckpt"
+    results = _finish(_sweep_in_two(folder, tmp_path, exit_at=(0, -1)), timeout=60)
+    (code0, output0), (code1, output1) = results
+    refused = "was written for a different sweep: `fn`"
+    assert code0 != 0 and code1 != 0, results
+    # Whichever process wrote the manifest first, the other is refused.
+    told = [o for o in (output0, output1) if "so its chunks will not come" in o]
+    assert len(told) == 1, results
+    (told,) = told
+    other = output1 if told is output0 else output0
+    assert refused in other
+    assert refused in told and "same folder" in told
+
+
+def test_several_processes_need_a_checkpoint(monkeypatch):
+    import jax
+
+    import constrained_jax as cjax
+
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    with pytest.raises(ValueError, match="checkpoint=folder"):
+        cjax.sweep(lambda x: 2 * x, np.arange(4.0), progress=False)
