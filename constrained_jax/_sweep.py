@@ -12,6 +12,11 @@ The checkpoint folder holds `manifest.json` (what was swept: the fingerprint) an
 file `chunk_XXXXXX.npz` per finished chunk, each written atomically (a temporary file
 in the same folder, `fsync`, `os.replace`) with the fingerprint's digest and a SHA-256
 checksum of its own arrays.
+
+Under `jax.distributed`, chunk `c` is process `c % process_count`'s; the processes
+exchange chunks through the folder only (each polls it for the others' files), and
+a failing process leaves a note in the key-value store of JAX's coordination
+service so that the others stop waiting (`_Peers`).
 """
 
 import collections
@@ -133,25 +138,38 @@ def sweep(
         code, the shapes or a closed-over array changes it, so does upgrading JAX or
         a library `fn` calls into (then the checkpoint is refused). It does not see
         inside Python callbacks (`jax.pure_callback`, `jax.debug.callback`): changing
-        a callback's Python code needs a new folder. One process per folder at a
-        time.
+        a callback's Python code needs a new folder. One sweep per folder at a
+        time (one process, or the processes of one `jax.distributed` job).
 
-    **Several hosts.** `sweep` uses the devices of the calling process only. Under
-    `jax.distributed.initialize()`, give each process its own share of the inputs
-    and its own folder, and gather the results yourself, e.g.
+    **Several processes or hosts.** Under `jax.distributed.initialize()` (SLURM,
+    Kubernetes, or several processes on one machine), call `sweep` the same way in
+    every process, with the same `fn`, the same `inputs` and the same `checkpoint`
+    folder, one that every process can read and write (a shared file system): chunk
+    `c` is evaluated by process `c % jax.process_count()`, on that process's local
+    devices, and written to the folder; every process then reads the others'
+    chunks from the folder as they appear and returns the whole result (the same
+    bits in every process, and as with one process on the same kind of devices).
+    No communication between the processes is needed besides the folder, and no
+    process waits for another before its own chunks are done. The chunking must be
+    the same in all processes (the same number and kind of local devices, the same
+    `batch_size`): a process whose sweep differs is refused by the folder's
+    manifest, like any other sweep.
 
-    ```python
-    jax.distributed.initialize()
-    k, p = jax.process_index(), jax.process_count()
-    mine = jax.tree.map(lambda x: np.array_split(x, p)[k], inputs)
-    out = cjax.sweep(fn, mine, checkpoint=f"sweep/process_{k}")
-    np.savez(f"sweep/result_{k}.npz", *jax.tree.leaves(out))
-    ```
+    - If a process raises, it tells the others through JAX's coordination service,
+        and they raise too (rather than wait for chunks that will not come), once
+        their own chunks are done.
+    - If a process dies, its finished chunks are on disk and its unfinished ones are
+        lost; JAX's runtime ends the other processes (after
+        `heartbeat_timeout_seconds` of `jax.distributed.initialize`, 100 s by
+        default), their own chunks done. Start the job again with the same folder:
+        chunks already there are read back, whoever wrote them, and only the missing
+        ones are computed (with any number of processes).
+    - Without a checkpoint folder, `sweep` raises a `ValueError` under several
+        processes: the folder is how they exchange their chunks.
 
-    Each process then shards its chunks over its local devices; there is no
-    communication between processes. Tested: one host with 1 device and with 4
-    (CPU devices forced by `XLA_FLAGS=--xla_force_host_platform_device_count=4`);
-    the multi-host pattern above is not tested here.
+    Tested with two processes on one machine, each with two CPU devices (forced by
+    `XLA_FLAGS=--xla_force_host_platform_device_count=2`), including one killed
+    mid-sweep and resumed.
 
     **Errors inside `fn`.** A run-time error of `fn` (an `eqx.error_if`, e.g. a solve
     called with `throw=True` that fails) stops the sweep: the chunk where it
@@ -683,8 +701,9 @@ def _check_devices(devices) -> list:
     if any(d.process_index != me for d in devices):
         raise ValueError(
             "`sweep` runs on the devices of this process only (`jax.local_devices()`). "
-            "On several hosts, call it in each process on its own share of the inputs "
-            "(see the docstring of `cjax.sweep`)."
+            "Under `jax.distributed`, call it in every process with the same inputs "
+            "and `checkpoint` folder: each process evaluates its share of the chunks "
+            "on its own devices (see the docstring of `cjax.sweep`)."
         )
     return devices
 
@@ -749,8 +768,9 @@ class _Peers:
         pause = self._POLL[0]
         while not all(done):
             arrived = False
+            there = {entry.name for entry in os.scandir(store.folder)}
             for index in [i for i, d in enumerate(done) if not d]:
-                if not store.path(index).exists():
+                if store.path(index).name not in there:
                     continue
                 start, stop = _bounds(index, chunk, n)
                 loaded = store.load(index, start, stop, outputs)
