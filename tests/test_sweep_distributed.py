@@ -26,13 +26,13 @@ TIMEOUT = 120  # seconds, for any subprocess: the test can never hang
 # (`port` 0: no `jax.distributed`, one process). `fn` goes through a callback that
 # counts the rows it sees (hence the chunks evaluated) and, with `exit_at` > 0,
 # ends the process abruptly (`os._exit`) when its chunk number `exit_at` starts:
-# the chunks before it are on disk, nothing of the others; `exit_at` < 0: `fn`
-# is another function.
+# the chunks before it are on disk, nothing of the others; `exit_at` -1: `fn` is
+# another function; -2: `fn` raises (`eqx.error_if`) on input row 5.
 WORKER = textwrap.dedent(
     """
     import json, os, sys
     process_id, port, folder, out, exit_at = sys.argv[1:]
-    import jax, jax.numpy as jnp, numpy as np
+    import equinox as eqx, jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
     if int(port):
         jax.distributed.initialize(
@@ -41,7 +41,7 @@ WORKER = textwrap.dedent(
             process_id=int(process_id),
         )
     import constrained_jax as cjax
-    assert len(jax.local_devices()) == 2, jax.local_devices()
+    assert len(jax.local_devices()) == int(os.environ["DEVICES"])
     rng = np.random.default_rng(0)
     inputs = {"x": rng.normal(size=22), "y": rng.normal(size=(22, 3))}
     rows = []
@@ -59,8 +59,10 @@ WORKER = textwrap.dedent(
             p["x"],
             vmap_method="broadcast_all",
         )
-        if int(exit_at) < 0:  # another fn
+        if int(exit_at) == -1:  # another fn
             x = 2 * x
+        if int(exit_at) == -2:  # fails on row 5 (chunk 1: process 1's)
+            x = eqx.error_if(x, x == inputs["x"][5], "no answer for this input")
         y = p["y"]
         return {"s": jnp.sin(x) * y[0] + jnp.exp(-y[1]), "t": jnp.cumsum(y) * x}
 
@@ -81,11 +83,12 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start(process_id, port, folder, out, exit_at=0) -> subprocess.Popen:
+def _start(process_id, port, folder, out, exit_at=0, devices=2) -> subprocess.Popen:
     env = dict(
         os.environ,
         JAX_PLATFORMS="cpu",
-        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+        DEVICES=str(devices),
         TQDM_DISABLE="1",
         PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
     )
@@ -117,12 +120,12 @@ def _finish(procs, timeout=TIMEOUT) -> list[tuple[int, str]]:
     return results
 
 
-def _sweep_in_two(folder, out_dir, exit_at=(0, 0)):
+def _sweep_in_two(folder, out_dir, exit_at=(0, 0), devices=2):
     port = _free_port()
-    procs = [
-        _start(k, port, folder, out_dir / f"out_{k}.npz", exit_at[k]) for k in (0, 1)
+    return [
+        _start(k, port, folder, out_dir / f"out_{k}.npz", exit_at[k], devices)
+        for k in (0, 1)
     ]
-    return procs
 
 
 def _result(path):
@@ -229,6 +232,23 @@ def test_a_failing_process_stops_the_others(tmp_path):
     other = output1 if told is output0 else output0
     assert refused in other
     assert refused in told and "same folder" in told
+
+
+def test_a_run_time_error_stops_the_others(tmp_path):
+    """`fn` raises on input row 5 (process 1's chunk): process 1 names the row, and
+    process 0 raises with its message once its own chunks are on disk. One device
+    per process: with several, a failing callback leaves the other devices of its
+    process waiting in XLA's collectives on CPU (as in one process)."""
+    folder = tmp_path / "ckpt"
+    results = _finish(
+        _sweep_in_two(folder, tmp_path, exit_at=(-2, -2), devices=1), timeout=60
+    )
+    (code0, output0), (code1, output1) = results
+    assert code1 != 0 and "`fn` raised on input row 5 " in output1, results
+    assert "no answer for this input" in output1
+    assert code0 != 0 and "process 1 failed" in output0, results
+    assert "`fn` raised on input row 5 " in output0
+    assert set(_chunk_files(folder)) == {f"chunk_{c:06d}.npz" for c in (0, 2, 4)}
 
 
 def test_several_processes_need_a_checkpoint(monkeypatch):
