@@ -148,12 +148,12 @@ def sweep(
     `c` is evaluated by process `c % jax.process_count()`, on that process's local
     devices, and written to the folder; every process then reads the others'
     chunks from the folder as they appear and returns the whole result (the same
-    bits in every process, and as with one process on the same kind of devices).
-    No communication between the processes is needed besides the folder, and no
-    process waits for another before its own chunks are done. The chunking must be
-    the same in all processes (the same number and kind of local devices, the same
-    `batch_size`): a process whose sweep differs is refused by the folder's
-    manifest, like any other sweep.
+    bits in every process, and as with one process with as many devices of that
+    kind). No communication between the processes is needed besides the folder,
+    and no process waits for another before its own chunks are done. The chunking
+    must be the same in all processes (the same number and kind of local devices,
+    the same `batch_size`): a process whose sweep differs is refused by the
+    folder's manifest, like any other sweep.
 
     - If a process raises, it tells the others through JAX's coordination service,
         and they raise too (rather than wait for chunks that will not come), once

@@ -18,8 +18,7 @@ import pytest
 
 
 ROOT = pathlib.Path(__file__).parents[1]
-N, BATCH = 22, 4  # 6 chunks of 4 rows (2 per device), the last one padded
-CHUNKS = 6
+CHUNKS = 6  # of WORKER's 22 inputs, 4 rows each (2 per device), the last padded
 TIMEOUT = 120  # seconds, for any subprocess: the test can never hang
 
 # One process of the sweep: `python -c WORKER process_id port folder out exit_at`
@@ -149,6 +148,22 @@ def _chunk_files(folder):
     }
 
 
+def _both_return(procs, out_dir, reference) -> list[dict]:
+    """Both processes succeed and return `reference` bit for bit: their infos."""
+    for code, output in _finish(procs):
+        assert code == 0, output
+    infos = []
+    for k in (0, 1):
+        arrays, info = _result(out_dir / f"out_{k}.npz")
+        _assert_equal(arrays, reference)
+        infos.append(info)
+    return infos
+
+
+def _names(*chunks) -> set[str]:
+    return {f"chunk_{c:06d}.npz" for c in chunks}
+
+
 @pytest.fixture(scope="module")
 def one_process(tmp_path_factory):
     """The reference: one process, the same two devices, no checkpoint."""
@@ -162,14 +177,7 @@ def one_process(tmp_path_factory):
 
 def test_two_processes_share_the_chunks(tmp_path, one_process):
     folder = tmp_path / "ckpt"
-    results = _finish(_sweep_in_two(folder, tmp_path))
-    for code, output in results:
-        assert code == 0, output
-    infos = []
-    for k in (0, 1):
-        arrays, info = _result(tmp_path / f"out_{k}.npz")
-        _assert_equal(arrays, one_process)
-        infos.append(info)
+    infos = _both_return(_sweep_in_two(folder, tmp_path), tmp_path, one_process)
     # Chunk c is process c % 2's: three each, none twice.
     assert [i["chunks"] for i in infos] == [3, 3]
     assert [(i["process"], i["processes"]) for i in infos] == [(0, 2), (1, 2)]
@@ -188,7 +196,7 @@ def test_killed_process_resumes(tmp_path, one_process):
         ((code, output),) = _finish([second])
         assert code == 17, output
         deadline = time.monotonic() + TIMEOUT
-        while set(_chunk_files(folder)) != {f"chunk_{c:06d}.npz" for c in (0, 1, 2, 4)}:
+        while set(_chunk_files(folder)) != _names(0, 1, 2, 4):
             assert first.poll() is None, first.communicate()[0]
             assert time.monotonic() < deadline, _chunk_files(folder)
             time.sleep(0.05)
@@ -200,15 +208,9 @@ def test_killed_process_resumes(tmp_path, one_process):
     assert first.returncode == -signal.SIGKILL
     before = _chunk_files(folder)
 
-    results = _finish(_sweep_in_two(folder, tmp_path))
-    for code, output in results:
-        assert code == 0, output
-    infos = []
-    for k in (0, 1):
-        arrays, info = _result(tmp_path / f"out_{k}.npz")
-        _assert_equal(arrays, one_process)
-        infos.append(info["chunks"])
-    assert infos == [0, 2]  # chunks 3 and 5, by process 1; nothing recomputed
+    infos = _both_return(_sweep_in_two(folder, tmp_path), tmp_path, one_process)
+    # Chunks 3 and 5, by process 1; nothing recomputed.
+    assert [i["chunks"] for i in infos] == [0, 2]
     after = _chunk_files(folder)
     assert len(after) == CHUNKS
     assert {k: after[k] for k in before} == before
@@ -248,7 +250,7 @@ def test_a_run_time_error_stops_the_others(tmp_path):
     assert "no answer for this input" in output1
     assert code0 != 0 and "process 1 failed" in output0, results
     assert "`fn` raised on input row 5 " in output0
-    assert set(_chunk_files(folder)) == {f"chunk_{c:06d}.npz" for c in (0, 2, 4)}
+    assert set(_chunk_files(folder)) == _names(0, 2, 4)
 
 
 def test_several_processes_need_a_checkpoint(monkeypatch):
