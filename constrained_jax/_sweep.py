@@ -181,7 +181,11 @@ def sweep(
     row's answer instead, call the solves with `throw=False` and return their
     `result` from `fn`: the failing rows are
     `np.flatnonzero(out.result != cjax.RESULTS.successful)`, and values that are
-    NaN or inf are returned as they are, never dropped.
+    NaN or inf are returned as they are, never dropped. On CPU with several devices
+    per process (`--xla_force_host_platform_device_count`), JAX 0.10.2 does not
+    return from a chunk whose `fn` raised (the other devices wait for the failing
+    one in a collective; seen with one process and with several): there, use
+    `throw=False`, or one device per process.
 
     **Raises:** `ValueError` for leaves that are not arrays or have no leading axis,
     leading axes of different lengths (the message lists each leaf's length), `N =
