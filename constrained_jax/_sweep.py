@@ -12,11 +12,17 @@ The checkpoint folder holds `manifest.json` (what was swept: the fingerprint) an
 file `chunk_XXXXXX.npz` per finished chunk, each written atomically (a temporary file
 in the same folder, `fsync`, `os.replace`) with the fingerprint's digest and a SHA-256
 checksum of its own arrays.
+
+Under `jax.distributed`, chunk `c` is process `c % process_count`'s; the processes
+exchange chunks through the folder only (each polls it for the others' files), and
+a failing process leaves a note in the key-value store of JAX's coordination
+service so that the others stop waiting (`_Peers`).
 """
 
 import collections
 import functools
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -25,6 +31,7 @@ import os
 import pathlib
 import re
 import tempfile
+import time
 import types
 import warnings
 import zlib
@@ -131,25 +138,38 @@ def sweep(
         code, the shapes or a closed-over array changes it, so does upgrading JAX or
         a library `fn` calls into (then the checkpoint is refused). It does not see
         inside Python callbacks (`jax.pure_callback`, `jax.debug.callback`): changing
-        a callback's Python code needs a new folder. One process per folder at a
-        time.
+        a callback's Python code needs a new folder. One sweep per folder at a
+        time (one process, or the processes of one `jax.distributed` job).
 
-    **Several hosts.** `sweep` uses the devices of the calling process only. Under
-    `jax.distributed.initialize()`, give each process its own share of the inputs
-    and its own folder, and gather the results yourself, e.g.
+    **Several processes or hosts.** Under `jax.distributed.initialize()` (SLURM,
+    Kubernetes, or several processes on one machine), call `sweep` the same way in
+    every process, with the same `fn`, the same `inputs` and the same `checkpoint`
+    folder, one that every process can read and write (a shared file system): chunk
+    `c` is evaluated by process `c % jax.process_count()`, on that process's local
+    devices, and written to the folder; every process then reads the others'
+    chunks from the folder as they appear and returns the whole result (the same
+    bits in every process, and as with one process with as many devices of that
+    kind). No communication between the processes is needed besides the folder,
+    and no process waits for another before its own chunks are done. The chunking
+    must be the same in all processes (the same number and kind of local devices,
+    the same `batch_size`): a process whose sweep differs is refused by the
+    folder's manifest, like any other sweep.
 
-    ```python
-    jax.distributed.initialize()
-    k, p = jax.process_index(), jax.process_count()
-    mine = jax.tree.map(lambda x: np.array_split(x, p)[k], inputs)
-    out = cjax.sweep(fn, mine, checkpoint=f"sweep/process_{k}")
-    np.savez(f"sweep/result_{k}.npz", *jax.tree.leaves(out))
-    ```
+    - If a process raises, it tells the others through JAX's coordination service,
+        and they raise too (rather than wait for chunks that will not come), once
+        their own chunks are done.
+    - If a process dies, its finished chunks are on disk and its unfinished ones are
+        lost; JAX's runtime ends the other processes (after
+        `heartbeat_timeout_seconds` of `jax.distributed.initialize`, 100 s by
+        default), their own chunks done. Start the job again with the same folder:
+        chunks already there are read back, whoever wrote them, and only the missing
+        ones are computed (with any number of processes).
+    - Without a checkpoint folder, `sweep` raises a `ValueError` under several
+        processes: the folder is how they exchange their chunks.
 
-    Each process then shards its chunks over its local devices; there is no
-    communication between processes. Tested: one host with 1 device and with 4
-    (CPU devices forced by `XLA_FLAGS=--xla_force_host_platform_device_count=4`);
-    the multi-host pattern above is not tested here.
+    Tested with two processes on one machine, each with two CPU devices (forced by
+    `XLA_FLAGS=--xla_force_host_platform_device_count=2`), including one killed
+    mid-sweep and resumed.
 
     **Errors inside `fn`.** A run-time error of `fn` (an `eqx.error_if`, e.g. a solve
     called with `throw=True` that fails) stops the sweep: the chunk where it
@@ -161,16 +181,40 @@ def sweep(
     row's answer instead, call the solves with `throw=False` and return their
     `result` from `fn`: the failing rows are
     `np.flatnonzero(out.result != cjax.RESULTS.successful)`, and values that are
-    NaN or inf are returned as they are, never dropped.
+    NaN or inf are returned as they are, never dropped. On CPU with several devices
+    per process (`--xla_force_host_platform_device_count`), JAX 0.10.2 does not
+    return from a chunk whose `fn` raised (the other devices wait for the failing
+    one in a collective; seen with one process and with several): there, use
+    `throw=False`, or one device per process.
 
     **Raises:** `ValueError` for leaves that are not arrays or have no leading axis,
     leading axes of different lengths (the message lists each leaf's length), `N =
     0` (nothing to evaluate: filter empty batches out before calling `sweep`),
     `batch_size < 1`, bad `devices`, or a checkpoint folder from a different sweep.
     """
+    if jax.process_count() == 1:
+        return _sweep(fn, inputs, batch_size, devices, checkpoint, progress, None)
+    peers = _Peers()
+    try:
+        return _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers)
+    except BaseException as error:
+        peers.report(error)
+        raise
+
+
+def _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers):
+    """`sweep`; `peers`: the other processes under `jax.distributed`, or `None`."""
     leaves, paths, treedef, n = _check_inputs(inputs)
     batch_size = _check_batch_size(batch_size)
     devices = _check_devices(devices)
+    me, processes = jax.process_index(), jax.process_count()
+    if processes > 1 and checkpoint is None:
+        raise ValueError(
+            f"`sweep` runs in one of {processes} processes (`jax.distributed`): each "
+            "process evaluates its share of the chunks and the processes exchange "
+            "them through the checkpoint folder. Pass `checkpoint=folder`, a folder "
+            "that every process can read and write (the same path in all of them)."
+        )
     n_devices = len(devices)
     chunk = min(_round_up(batch_size, n_devices), _round_up(n, n_devices))
     n_chunks = math.ceil(n / chunk)
@@ -223,36 +267,45 @@ def sweep(
                     out[start:stop] = part
                 done[index] = True
 
+    desc = "cjax.sweep" if processes == 1 else f"cjax.sweep [{me}/{processes}]"
     bar = progress_bar(
-        progress, total=n_chunks, initial=sum(done), unit="chunk", desc="cjax.sweep"
+        progress, total=n_chunks, initial=sum(done), unit="chunk", desc=desc
     )
+    compiled = None
+
+    def evaluate(index: int) -> None:
+        nonlocal compiled
+        if compiled is None:
+            bar.set_postfix_str("compiling", refresh=True)
+            compiled = traced.lower().compile()
+            bar.set_postfix_str("", refresh=False)
+            bar.unpause()  # the rate and time left leave compilation out
+        start, stop = _bounds(index, chunk, n)
+        host_in = [
+            _padded_rows(leaf, start, stop, chunk, dtype)
+            for leaf, dtype in zip(leaves, dtypes, strict=True)
+        ]
+        try:
+            host_out = _run_chunk(compiled, host_in, treedef, sharding)
+        except jax.errors.JaxRuntimeError as error:
+            # Only on failure: find the rows that raise (by bisection with the same
+            # compiled program) and say which they are.
+            _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n)
+        host_out = [x[: stop - start] for x in host_out]
+        for out, part in zip(outputs, host_out, strict=True):
+            out[start:stop] = part
+        if store is not None:
+            store.save(index, start, stop, host_out)
+        done[index] = True
+        bar.update(1)
+
     try:
-        compiled = None
-        for index in range(n_chunks):
-            if done[index]:
-                continue
-            if compiled is None:
-                bar.set_postfix_str("compiling", refresh=True)
-                compiled = traced.lower().compile()
-                bar.set_postfix_str("", refresh=False)
-                bar.unpause()  # the rate and time left leave compilation out
-            start, stop = _bounds(index, chunk, n)
-            host_in = [
-                _padded_rows(leaf, start, stop, chunk, dtype)
-                for leaf, dtype in zip(leaves, dtypes, strict=True)
-            ]
-            try:
-                host_out = _run_chunk(compiled, host_in, treedef, sharding)
-            except jax.errors.JaxRuntimeError as error:
-                # Only on failure: find the rows that raise (by bisection with the same
-                # compiled program) and say which they are.
-                _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n)
-            host_out = [x[: stop - start] for x in host_out]
-            for out, part in zip(outputs, host_out, strict=True):
-                out[start:stop] = part
-            if store is not None:
-                store.save(index, start, stop, host_out)
-            bar.update(1)
+        # Chunk `index` is this process's if `index % processes == me`.
+        for index in range(me, n_chunks, processes):
+            if not done[index]:
+                evaluate(index)
+        if peers is not None:
+            peers.collect(store, done, outputs, chunk, n, evaluate, bar)
     finally:
         bar.close()
     return jax.tree.unflatten(out_treedef, outputs)
@@ -652,10 +705,90 @@ def _check_devices(devices) -> list:
     if any(d.process_index != me for d in devices):
         raise ValueError(
             "`sweep` runs on the devices of this process only (`jax.local_devices()`). "
-            "On several hosts, call it in each process on its own share of the inputs "
-            "(see the docstring of `cjax.sweep`)."
+            "Under `jax.distributed`, call it in every process with the same inputs "
+            "and `checkpoint` folder: each process evaluates its share of the chunks "
+            "on its own devices (see the docstring of `cjax.sweep`)."
         )
     return devices
+
+
+# --------------------------------------------------------------------------------------
+# Several processes (`jax.distributed`): the chunks of the others, through the folder.
+
+
+class _PeerFailed(RuntimeError):
+    pass
+
+
+_SWEEPS = itertools.count()  # sweeps in this process: the same sequence in every one
+
+
+class _Peers:
+    """The other processes of a sweep under `jax.distributed`: `collect` waits for
+    their chunk files in the shared folder; `report` tells them that this process
+    failed, through the key-value store of JAX's coordination service, so that they
+    raise instead of waiting for chunks that will not come."""
+
+    _POLL = (0.02, 1.0)  # seconds between looks at the folder: first, at most
+
+    def __init__(self):
+        self.me = jax.process_index()
+        self.key = f"constrained_jax.sweep/{next(_SWEEPS)}/failed/"
+        try:  # private to JAX: without it a failure is seen by JAX's heartbeat only
+            from jax._src import distributed
+
+            self.client = distributed.global_state.client
+        except Exception:
+            self.client = None
+
+    def report(self, error: BaseException) -> None:
+        if self.client is None or isinstance(error, _PeerFailed):
+            return
+        text = f"{type(error).__name__}: {error}"
+        try:
+            self.client.key_value_set(self.key + str(self.me), text[:2000])
+        except Exception:  # the service is gone too: nothing to tell
+            pass
+
+    def _check(self) -> None:
+        if self.client is None:
+            return
+        try:
+            failed = self.client.key_value_dir_get(self.key)
+        except Exception:
+            return
+        if failed:
+            name, text = failed[0]
+            raise _PeerFailed(
+                f"cjax.sweep: process {name.rsplit('/', 1)[-1]} failed, so its "
+                f"chunks will not come; it raised {text}\nThe chunks finished by "
+                "every process are in the checkpoint folder: run the sweep again "
+                "with the same folder to compute only the others."
+            )
+
+    def collect(self, store, done, outputs, chunk, n, evaluate, bar) -> None:
+        """Read the other processes' chunks as their files appear (a file there is
+        whole: they are written atomically); a corrupted one is computed here."""
+        pause = self._POLL[0]
+        while not all(done):
+            arrived = False
+            there = {entry.name for entry in os.scandir(store.folder)}
+            for index in [i for i, d in enumerate(done) if not d]:
+                if store.path(index).name not in there:
+                    continue
+                start, stop = _bounds(index, chunk, n)
+                loaded = store.load(index, start, stop, outputs)
+                if loaded is None:
+                    evaluate(index)
+                    continue
+                for out, part in zip(outputs, loaded, strict=True):
+                    out[start:stop] = part
+                done[index] = arrived = True
+                bar.update(1)
+            if not all(done):
+                self._check()
+                pause = self._POLL[0] if arrived else min(2 * pause, self._POLL[1])
+                time.sleep(pause)
 
 
 # --------------------------------------------------------------------------------------
@@ -715,17 +848,41 @@ def _checksum(arrays) -> str:
     return h.hexdigest()
 
 
-def _write_atomically(path: pathlib.Path, write: Callable[[Any], None]) -> None:
+def _temporary_suffix(process: int) -> str:
+    """The suffix of this process's temporary files (`.p<index>.tmp`): under
+    `jax.distributed` a process cleans up only its own (a predecessor's, killed
+    mid-write), never those another process is writing."""
+    return f".p{process}.tmp"
+
+
+def _write_atomically(
+    path: pathlib.Path, write: Callable[[Any], None], *, exclusive: bool = False
+) -> None:
     """`write(file)` into a temporary file next to `path`, `fsync`, then rename it
     over `path` (atomic on POSIX and Windows): readers see the old file or the whole
-    new one, never a partial one."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    new one, never a partial one. `exclusive=True`: link it to `path` instead, which
+    raises `FileExistsError` if `path` exists (another process created it first)."""
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent,
+        prefix=f".{path.name}.",
+        suffix=_temporary_suffix(jax.process_index()),
+    )
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if not exclusive:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise
+            except OSError:  # no hard links on this file system: last one wins
+                os.replace(tmp, path)
+            else:
+                os.remove(tmp)
     except BaseException:
         if os.path.exists(tmp):
             os.remove(tmp)
@@ -762,14 +919,25 @@ class _Checkpoint:
         self.digest = hashlib.sha256(
             json.dumps(key, sort_keys=True).encode()
         ).hexdigest()
-        for stale in folder.glob(".*.tmp"):  # left by a process killed mid-write
+        # Temporary files left by a process killed mid-write: all of them with one
+        # process, only this process's own under `jax.distributed`.
+        if jax.process_count() == 1:
+            pattern = ".*.tmp"
+        else:
+            pattern = ".*" + _temporary_suffix(jax.process_index())
+        for stale in folder.glob(pattern):
             stale.unlink(missing_ok=True)
         manifest = folder / _MANIFEST
-        if manifest.exists():
-            self._compare(manifest, info)
-        else:
+        if not manifest.exists():
             text = json.dumps({"key": key, "info": info}, indent=1, sort_keys=True)
-            _write_atomically(manifest, lambda f: f.write(text.encode()))
+            try:  # exclusive: of processes starting together, one writes it
+                _write_atomically(
+                    manifest, lambda f: f.write(text.encode()), exclusive=True
+                )
+                return
+            except FileExistsError:
+                pass
+        self._compare(manifest, info)
 
     def _refuse(self, why: str):
         raise ValueError(
