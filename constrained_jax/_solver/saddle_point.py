@@ -461,6 +461,7 @@ class Automatic(AbstractSaddlePointSolver):
     """
 
     unroll_max: int = 6
+    diagonal_max: int = 6
 
     def structured(self) -> bool:
         return True
@@ -478,9 +479,25 @@ class Automatic(AbstractSaddlePointSolver):
     def solve(self, mass, jac, rhs, bias):
         n, k = rhs.shape[0], bias.shape[0]
         solver = self.choose(mass, n, k)
+        if self._diagonal_fast_path(mass, jac, n, k):
+            from .diagonal import diagonal_solve
+
+            return diagonal_solve(mass, jac, rhs, bias, solver.solve)
         if isinstance(solver, FullKKTLU):
             mass, jac = as_dense(mass), as_dense(jac)
         return solver.solve(mass, jac, rhs, bias)
+
+    def _diagonal_fast_path(self, mass, jac, n: int, k: int) -> bool:
+        """Whether the unrolled diagonal range-space method applies: a structurally
+        diagonal `M` whose every diagonal entry that `A` couples is structurally
+        nonzero, with `n + k <= diagonal_max`."""
+        from .diagonal import coupled_columns, is_diagonal
+
+        if n + k > self.diagonal_max or not is_diagonal(mass):
+            return False
+        present = np.zeros((n,), bool)
+        present[list(mass.rows)] = True
+        return bool(np.all(present | ~coupled_columns(jac, n)))
 
 
 def _block_diagonal(pattern: np.ndarray) -> bool:
