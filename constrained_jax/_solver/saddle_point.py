@@ -461,7 +461,6 @@ class Automatic(AbstractSaddlePointSolver):
     """
 
     unroll_max: int = 6
-    diagonal_max: int = 6
 
     def structured(self) -> bool:
         return True
@@ -490,10 +489,10 @@ class Automatic(AbstractSaddlePointSolver):
     def _diagonal_fast_path(self, mass, jac, n: int, k: int) -> bool:
         """Whether the unrolled diagonal range-space method applies: a structurally
         diagonal `M` whose every diagonal entry that `A` couples is structurally
-        nonzero, with `n + k <= diagonal_max`."""
+        nonzero, with `n + k <= unroll_max`."""
         from .diagonal import coupled_columns, is_diagonal
 
-        if n + k > self.diagonal_max or not is_diagonal(mass):
+        if n + k > self.unroll_max or not is_diagonal(mass):
             return False
         present = np.zeros((n,), bool)
         present[list(mass.rows)] = True
