@@ -432,9 +432,16 @@ FullKKTLU.__init__.__doc__ = RangeSpaceLDL.__init__.__doc__ = """**Arguments:**
 class Automatic(AbstractSaddlePointSolver):
     """The default: a method chosen at trace time from the structure and size.
 
-    - `n + k <= unroll_max`: [`constrained_jax.RangeSpaceLDL`][], unrolled on the
-        nonzeros of the detected patterns (fused under `jax.vmap`; the fastest for the
-        small systems of the scenes).
+    - `n + k <= unroll_max` with a structurally diagonal `M` (Cartesian coordinates,
+        the scenes' pendulum and cylinders): the range-space method with the
+        reciprocals of the masses, unrolled on the nonzeros of `A`
+        (`constrained_jax._solver.diagonal`; under `jax.vmap` about as fast as
+        hand-written equations). A mass that vanishes at run time while `A` couples
+        it (the rolling cylinder with `I = 0`) is solved by `RangeSpaceLDL` instead,
+        for the whole batch, and only when some state of the batch needs it.
+    - other `n + k <= unroll_max`: [`constrained_jax.RangeSpaceLDL`][], unrolled on
+        the nonzeros of the detected patterns (fused under `jax.vmap`; the fastest
+        for the small systems of the scenes).
     - larger, with a mass matrix that is block diagonal with a structurally nonzero
         diagonal (Cartesian and maximal coordinates, e.g. `scenes.chain`): the sparse
         range-space method `SparseSchur`, whose cost follows the nonzeros.
