@@ -353,14 +353,16 @@ class LagrangianSystem(eqx.Module):
         if checked:
             tangents.append((zero, jnp.asarray(probe_vector(n), dtype), zero_t))
         (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents)
-        dp = jnp.stack([d[1] for d in d_out])
-        rhs = grad_q - dp[num]
+        # The columns of M stacked apart from the other directions: under `jax.vmap`
+        # a mass matrix that depends on `args` only then stays unbatched.
+        columns = jnp.stack([d[1] for d in d_out[:num]])
+        rhs = grad_q - d_out[num][1]
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
-        mass = _decompress(dp[:num], structure.mass, colours)
+        mass = _decompress(columns, structure.mass, colours)
         mismatch = jnp.array(False)
         if checked:
-            mismatch = _probe_mismatch(dp[:num].T, structure.mass, colours, dp[-1])
+            mismatch = _probe_mismatch(columns.T, structure.mass, colours, d_out[-1][1])
         return mass, rhs, mismatch
 
     def _constraint_pass(self, q, qd, t, args, structure: Structure):

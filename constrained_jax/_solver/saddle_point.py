@@ -432,9 +432,16 @@ FullKKTLU.__init__.__doc__ = RangeSpaceLDL.__init__.__doc__ = """**Arguments:**
 class Automatic(AbstractSaddlePointSolver):
     """The default: a method chosen at trace time from the structure and size.
 
-    - `n + k <= unroll_max`: [`constrained_jax.RangeSpaceLDL`][], unrolled on the
-        nonzeros of the detected patterns (fused under `jax.vmap`; the fastest for the
-        small systems of the scenes).
+    - `n + k <= unroll_max` with a structurally diagonal `M` (Cartesian coordinates,
+        the scenes' pendulum and cylinders): the range-space method with the
+        reciprocals of the masses, unrolled on the nonzeros of `A`
+        (`constrained_jax._solver.diagonal`; under `jax.vmap` about as fast as
+        hand-written equations). A mass that vanishes at run time while `A` couples
+        it (the rolling cylinder with `I = 0`) is solved by `RangeSpaceLDL` instead,
+        for the whole batch, and only when some state of the batch needs it.
+    - other `n + k <= unroll_max`: [`constrained_jax.RangeSpaceLDL`][], unrolled on
+        the nonzeros of the detected patterns (fused under `jax.vmap`; the fastest
+        for the small systems of the scenes).
     - larger, with a mass matrix that is block diagonal with a structurally nonzero
         diagonal (Cartesian and maximal coordinates, e.g. `scenes.chain`): the sparse
         range-space method `SparseSchur`, whose cost follows the nonzeros.
@@ -478,9 +485,25 @@ class Automatic(AbstractSaddlePointSolver):
     def solve(self, mass, jac, rhs, bias):
         n, k = rhs.shape[0], bias.shape[0]
         solver = self.choose(mass, n, k)
+        if self._diagonal_fast_path(mass, jac, n, k):
+            from .diagonal import diagonal_solve
+
+            return diagonal_solve(mass, jac, rhs, bias, solver.solve)
         if isinstance(solver, FullKKTLU):
             mass, jac = as_dense(mass), as_dense(jac)
         return solver.solve(mass, jac, rhs, bias)
+
+    def _diagonal_fast_path(self, mass, jac, n: int, k: int) -> bool:
+        """Whether the unrolled diagonal range-space method applies: a structurally
+        diagonal `M` whose every diagonal entry that `A` couples is structurally
+        nonzero, with `n + k <= unroll_max`."""
+        from .diagonal import coupled_columns, is_diagonal
+
+        if n + k > self.unroll_max or not is_diagonal(mass):
+            return False
+        present = np.zeros((n,), bool)
+        present[list(mass.rows)] = True
+        return bool(np.all(present | ~coupled_columns(jac, n)))
 
 
 def _block_diagonal(pattern: np.ndarray) -> bool:

@@ -1,0 +1,238 @@
+"""The range-space method for a structurally diagonal mass matrix, `M = D`:
+
+    (A D^-1 A^T) lambda = -b - A D^-1 f,    x = D^-1 (f + A^T lambda),
+
+with the reciprocals `1 / D_ii` computed once and every operation written on scalars
+(unrolled at trace time on the nonzeros of `A`), so that under `jax.vmap` XLA fuses
+it into about as many loops over the batch as hand-written equations of motion.
+
+A mass that vanishes at run time (set through `args`, say) has no reciprocal. If its
+column of `A` is structurally zero, the coordinate is a free gauge (see
+[`constrained_jax.AbstractSaddlePointSolver`][]) and its reciprocal is taken as 0.
+If the constraints couple it (the rolling cylinder with `I = 0`), the system may
+still be nonsingular, and it is solved by a general method instead: under `jax.vmap`
+the general method runs only when some state of the batch needs it (a custom
+batching rule with one `lax.cond` for the whole batch), so a batch of positive
+masses costs only the fast path.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .saddle_point import (
+    _dot,
+    _entries,
+    _max_abs,
+    _minus_sum,
+    ldl_factor_unrolled,
+    ldl_solve_unrolled,
+)
+from .sparse import SparseMatrix
+
+
+def is_diagonal(mass) -> bool:
+    """Whether `mass` is a `SparseMatrix` whose pattern lies on the diagonal."""
+    return isinstance(mass, SparseMatrix) and all(
+        i == j for i, j in zip(mass.rows, mass.cols, strict=True)
+    )
+
+
+def _diagonal(mass, n: int) -> list:
+    """The diagonal entries of a diagonal `SparseMatrix` (`None`: structural zero)."""
+    out: list = [None] * n
+    for p, i in enumerate(mass.rows):
+        out[i] = mass.values[p]
+    return out
+
+
+def coupled_columns(jac, n: int) -> np.ndarray:
+    """The columns of `A` that are not structurally zero (trace-time booleans)."""
+    if isinstance(jac, SparseMatrix):
+        out = np.zeros((n,), bool)
+        out[list(jac.cols)] = True
+        return out
+    return np.full((n,), jac.shape[0] > 0)
+
+
+def needs_general(mass, jac, n: int):
+    """Whether the fast path cannot solve this system: a mass coupled by `A` that is
+    not positive beyond round-off (`D_ii <= 10 n eps max|D|`)."""
+    d = _diagonal(mass, n)
+    coupled = coupled_columns(jac, n)
+    present = [v for v in d if v is not None]
+    if not present:
+        return jnp.asarray(bool(np.any(coupled)))
+    scale = functools.reduce(jnp.maximum, [jnp.abs(v) for v in present])
+    threshold = 10 * n * jnp.finfo(scale.dtype).eps * scale
+    flags = [
+        jnp.asarray(True) if d[i] is None else d[i] <= threshold
+        for i in range(n)
+        if coupled[i]
+    ]
+    if not flags:
+        return jnp.asarray(False)
+    return functools.reduce(jnp.logical_or, flags)
+
+
+def diagonal_range_space(mass, jac, rhs, bias):
+    """The fast path, assuming `needs_general` is false: `(x, lambda, singular)`.
+
+    `singular` flags a vanishing pivot of `A D^-1 A^T` (below `10 k eps` of its
+    largest entry: redundant constraints), a force on a massless coordinate that
+    nothing couples to (`|f_i| > 100 n eps max|f|`) and a non-finite result.
+    """
+    n, k = rhs.shape[0], bias.shape[0]
+    d = _diagonal(mass, n)
+    a = _entries(jac, (k, n))
+    coupled = coupled_columns(jac, n)
+    f = [rhs[i] for i in range(n)]
+    zero = jnp.zeros_like(rhs[0])
+    present = [v for v in d if v is not None]
+    threshold = None
+    if present:
+        scale = _max_abs(present)
+        threshold = 10 * n * jnp.finfo(scale.dtype).eps * scale
+    tol = 100 * n * jnp.finfo(rhs.dtype).eps * _max_abs(f)
+    inv: list = []
+    inconsistent = jnp.array(False)
+    for i in range(n):
+        if coupled[i]:
+            inv.append(1 / d[i])
+            continue
+        # A free coordinate: its reciprocal is 0 when its mass vanishes (a free
+        # gauge), which is consistent only without a force on it.
+        small = jnp.array(True) if d[i] is None else jnp.abs(d[i]) <= threshold
+        if d[i] is not None:
+            inv.append(jnp.where(small, zero, 1 / jnp.where(small, 1, d[i])))
+        else:
+            inv.append(None)
+        inconsistent = inconsistent | (small & (jnp.abs(f[i]) > tol))
+    zeros_lam = jnp.zeros((0,), rhs.dtype)
+    if k == 0:
+        lam: list = []
+        x = [zero if v is None else f[i] * v for i, v in enumerate(inv)]
+        singular = inconsistent
+    else:
+        # D^-1 A^T, row by row of A.
+        y = [[None if v is None else v * inv[i] for i, v in enumerate(r)] for r in a]
+        schur = [[_dot(y[r], a[s]) for s in range(k)] for r in range(k)]
+        lower, piv, _, breakdown = ldl_factor_unrolled(schur)
+        lam, _ = ldl_solve_unrolled(
+            lower, piv, [_minus_sum(-bias[r], [_dot(y[r], f)]) for r in range(k)]
+        )
+        lam = [zero if v is None else v for v in lam]
+        x = []
+        for i in range(n):
+            if inv[i] is None:
+                x.append(zero)
+                continue
+            coupling = _dot([a[r][i] for r in range(k)], lam)
+            x.append((f[i] if coupling is None else f[i] + coupling) * inv[i])
+        singular = breakdown | inconsistent
+    # Elementwise on the scalars: a reduction over a stacked array would cost XLA
+    # separate passes over the batch.
+    finite = [jnp.isfinite(v) for v in x + lam]
+    singular = singular | jnp.invert(functools.reduce(jnp.logical_and, finite))
+    x = jnp.stack([jnp.where(singular, zero, v) for v in x])
+    lam = jnp.stack([jnp.where(singular, zero, v) for v in lam]) if k else zeros_lam
+    return x, lam, singular
+
+
+def _batched(fn, axis_size, in_batched, args):
+    """`jax.vmap(fn)` over the batched arguments only."""
+    axes = tuple(0 if any(jax.tree.leaves(b)) else None for b in in_batched)
+    return jax.vmap(fn, in_axes=axes, axis_size=axis_size)(*args)
+
+
+def _mul(matrix, v, transpose: bool = False):
+    """`matrix @ v` (`matrix.T @ v`) for a dense array or a `SparseMatrix`."""
+    if not isinstance(matrix, SparseMatrix):
+        return (matrix.T if transpose else matrix) @ v
+    rows, cols = np.asarray(matrix.rows, int), np.asarray(matrix.cols, int)
+    if transpose:
+        rows, cols = cols, rows
+    size = matrix.shape[1 if transpose else 0]
+    return jnp.zeros((size,), v.dtype).at[rows].add(matrix.values * v[cols])
+
+
+def diagonal_solve(mass, jac, rhs, bias, general):
+    """Solves the saddle-point system for a diagonal `SparseMatrix` `mass`: the fast
+    path where it applies, else `general(mass, jac, rhs, bias)`, one `lax.cond` per
+    call (per batch under `jax.vmap`).
+
+    Differentiable in forward and reverse mode: the tangents solve the same system
+    (`lax.custom_linear_solve`, so that they transpose).
+    """
+    n = rhs.shape[0]
+
+    @jax.custom_batching.custom_vmap
+    def core(mass, jac, rhs, bias):
+        return lax.cond(
+            needs_general(mass, jac, n),
+            general,
+            diagonal_range_space,
+            mass,
+            jac,
+            rhs,
+            bias,
+        )
+
+    @core.def_vmap
+    def _(axis_size, in_batched, mass, jac, rhs, bias):
+        args = (mass, jac, rhs, bias)
+        flags = _batched(
+            lambda m, a: needs_general(m, a, n), axis_size, in_batched[:2], args[:2]
+        )
+        out = lax.cond(
+            jnp.any(flags),
+            lambda: _batched(general, axis_size, in_batched, args),
+            lambda: _batched(diagonal_range_space, axis_size, in_batched, args),
+        )
+        return out, (True, True, True)
+
+    @jax.custom_jvp
+    def solve(mass, jac, rhs, bias):
+        return core(mass, jac, rhs, bias)
+
+    @solve.defjvp
+    def _(primals, tangents):
+        mass, jac, rhs, bias = primals
+        dmass, djac, drhs, dbias = tangents
+        x, lam, singular = solve(mass, jac, rhs, bias)
+        # K z = r, K = [[M, -A^T], [A, 0]]: K dz = dr - dK z.
+        dr = jnp.concatenate(
+            [
+                drhs - _mul(dmass, x) + _mul(djac, lam, transpose=True),
+                -dbias - _mul(djac, x),
+            ]
+        )
+
+        def matvec(z):
+            return jnp.concatenate(
+                [
+                    _mul(mass, z[:n]) - _mul(jac, z[n:], transpose=True),
+                    _mul(jac, z[:n]),
+                ]
+            )
+
+        def kkt_solve(_, r):
+            dx, dlam, _ = solve(mass, jac, r[:n], -r[n:])
+            return jnp.concatenate([dx, dlam])
+
+        def kkt_transpose_solve(_, r):
+            # K^T = [[M, A^T], [-A, 0]]: K^T w = r is K (w1, -w2) = (r1, -r2).
+            w1, w2, _ = solve(mass, jac, r[:n], r[n:])
+            return jnp.concatenate([w1, -w2])
+
+        dz = lax.custom_linear_solve(
+            matvec, dr, kkt_solve, kkt_transpose_solve, has_aux=False
+        )
+        dz = jnp.where(singular, 0.0, dz)
+        dsingular = np.zeros(np.shape(singular), jax.dtypes.float0)
+        return (x, lam, singular), (dz[:n], dz[n:], dsingular)
+
+    return solve(mass, jac, rhs, bias)

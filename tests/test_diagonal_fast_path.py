@@ -1,0 +1,201 @@
+"""The default solver's fast path for a structurally diagonal mass matrix (the
+range-space method with reciprocals, `constrained_jax._solver.diagonal`), against
+`FullKKTLU` on the same systems, with zero masses, singular systems and derivatives."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+from constrained_jax._solver.sparse import SparseMatrix
+from constrained_jax.scenes import two_cylinders as cyl
+
+from .helpers import finite_difference_grad
+
+
+AUTO = cjax.Automatic()
+
+
+def _problem(rng, n, k, jac_pattern=None, masses=None):
+    """`(mass, jac, rhs, bias)`: `M` diagonal (a `SparseMatrix`), `A` with the
+    boolean pattern `jac_pattern` (a `SparseMatrix`; dense random if `None`)."""
+    masses = rng.uniform(0.5, 2.0, size=n) if masses is None else np.asarray(masses)
+    mass = SparseMatrix.from_dense(jnp.diag(jnp.asarray(masses)), np.eye(n, dtype=bool))
+    jac = rng.normal(size=(k, n))
+    if jac_pattern is not None:
+        jac = SparseMatrix.from_dense(
+            jnp.asarray(jac * jac_pattern), np.asarray(jac_pattern)
+        )
+    else:
+        jac = jnp.asarray(jac)
+    return mass, jac, jnp.asarray(rng.normal(size=n)), jnp.asarray(rng.normal(size=k))
+
+
+def _reference(mass, jac, rhs, bias):
+    return cjax.FullKKTLU().solve(mass, jac, rhs, bias)
+
+
+def _assert_agree(out, ref, tol=1e-12):
+    x, lam, singular = out
+    x_ref, lam_ref, singular_ref = ref
+    assert not singular and not singular_ref
+    scale = 1 + float(jnp.max(jnp.abs(jnp.concatenate([x_ref, lam_ref]))))
+    np.testing.assert_allclose(x, x_ref, atol=tol * scale)
+    np.testing.assert_allclose(lam, lam_ref, atol=tol * scale)
+
+
+def test_fast_path_is_chosen():
+    mass, jac, _, _ = _problem(np.random.default_rng(0), 3, 2)
+    assert AUTO._diagonal_fast_path(mass, jac, 3, 2)
+    # A structurally zero mass that A couples: always the general method.
+    pattern = np.diag([True, True, False])
+    sparse = SparseMatrix.from_dense(jnp.eye(3), pattern)
+    assert not AUTO._diagonal_fast_path(sparse, jac, 3, 2)
+    # Too large.
+    assert not AUTO._diagonal_fast_path(mass, jac, 3, 4)
+
+
+@pytest.mark.parametrize(
+    "n, k, pattern",
+    [
+        (3, 1, None),
+        (4, 2, None),
+        (5, 0, None),
+        (4, 2, [[1, 0, 1, 0], [0, 1, 0, 0]]),
+        (3, 2, [[1, 0, 0], [0, 1, 1]]),
+        (5, 1, [[0, 1, 0, 0, 1]]),
+    ],
+)
+def test_matches_full_lu(n, k, pattern):
+    rng = np.random.default_rng(10 * n + k)
+    pattern = None if pattern is None else np.asarray(pattern, bool)
+    problem = _problem(rng, n, k, pattern)
+    _assert_agree(jax.jit(AUTO.solve)(*problem), _reference(*problem))
+
+
+def test_constant_rows_under_vmap():
+    """`A` and the masses unbatched (constant rows, parameters), `f` batched."""
+    rng = np.random.default_rng(1)
+    mass, jac, _, bias = _problem(rng, 4, 2, np.array([[1, 1, 0, 0], [0, 0, 1, 1]]))
+    rhs = jnp.asarray(rng.normal(size=(7, 4)))
+    out = jax.jit(jax.vmap(AUTO.solve, in_axes=(None, None, 0, None)))(
+        mass, jac, rhs, bias
+    )
+    for i in range(7):
+        ref = _reference(mass, jac, rhs[i], bias)
+        _assert_agree(jax.tree.map(lambda v, i=i: v[i], out), ref)
+
+
+def test_free_gauge():
+    """A zero mass that nothing couples to: zero acceleration without a force on it,
+    singular with one."""
+    rng = np.random.default_rng(2)
+    pattern = np.array([[1, 1, 0]], bool)
+    mass, jac, rhs, bias = _problem(rng, 3, 1, pattern, masses=[1.0, 2.0, 0.0])
+    rhs = rhs.at[2].set(0.0)
+    x, lam, singular = jax.jit(AUTO.solve)(mass, jac, rhs, bias)
+    assert not singular and x[2] == 0
+    _assert_agree((x, lam, singular), _reference(mass, jac, rhs, bias))
+    _, _, singular = jax.jit(AUTO.solve)(mass, jac, rhs.at[2].set(1.0), bias)
+    assert singular
+
+
+def test_coupled_zero_mass_single_and_batched():
+    """A zero mass that `A` couples (the cylinder with `I = 0`): solved by the general
+    method, alone and in a batch where only some states need it."""
+    rng = np.random.default_rng(3)
+    pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
+    mass, jac, rhs, bias = _problem(rng, 3, 2, pattern, masses=[1.0, 2.0, 0.0])
+    _assert_agree(
+        jax.jit(AUTO.solve)(mass, jac, rhs, bias), _reference(mass, jac, rhs, bias)
+    )
+    values = jnp.stack([mass.values, jnp.array([1.0, 2.0, 0.5]), mass.values])
+    masses = SparseMatrix(values, mass.rows, mass.cols, mass.shape)
+    out = jax.jit(jax.vmap(AUTO.solve, in_axes=(0, None, None, None)))(
+        masses, jac, rhs, bias
+    )
+    for i in range(3):
+        m_i = SparseMatrix(values[i], mass.rows, mass.cols, mass.shape)
+        ref = _reference(m_i, jac, rhs, bias)
+        _assert_agree(jax.tree.map(lambda v, i=i: v[i], out), ref)
+
+
+def test_cylinders_with_zero_inertia():
+    """The scene with `alpha = 0`, against its closed form."""
+    system, args = cyl.system(), cyl.default_args(alpha=0.0)
+    theta = jnp.asarray([0.3, 0.5])
+    q, qd = jax.vmap(lambda th: cyl.state(th, 0.7 * th, args))(theta)
+    qdd, lam, singular = jax.jit(
+        jax.vmap(lambda q_, qd_: system.solve_accelerations(q_, qd_, 0.0, args))
+    )(q, qd)
+    assert not jnp.any(singular)
+    np.testing.assert_allclose(
+        qdd[:, 1], cyl.angular_acceleration(theta, args), rtol=1e-12
+    )
+    np.testing.assert_allclose(lam[:, 1], 0.0, atol=1e-12)
+
+
+def test_singular_cases():
+    rng = np.random.default_rng(4)
+    mass, jac, rhs, bias = _problem(rng, 3, 2)
+    redundant = jnp.stack([jac[0], 2 * jac[0]])
+    for problem in (
+        (mass, redundant, rhs, bias),
+        (mass, jac, rhs.at[0].set(jnp.nan), bias),
+        (SparseMatrix(mass.values.at[1].set(jnp.nan), *_static(mass)), jac, rhs, bias),
+    ):
+        x, lam, singular = jax.jit(AUTO.solve)(*problem)
+        assert singular
+        assert jnp.all(x == 0) and jnp.all(lam == 0)
+    # In a batch, only the singular state is flagged.
+    rhs_b = jnp.stack([rhs, rhs.at[0].set(jnp.nan)])
+    _, _, singular = jax.vmap(AUTO.solve, in_axes=(None, None, 0, None))(
+        mass, jac, rhs_b, bias
+    )
+    assert not singular[0] and singular[1]
+
+
+def _static(mass):
+    return mass.rows, mass.cols, mass.shape
+
+
+def _loss(solver, pattern):
+    def loss(theta):
+        masses, jac = theta[:3], theta[3:9].reshape(2, 3)
+        mass = SparseMatrix(masses, (0, 1, 2), (0, 1, 2), (3, 3))
+        jac = SparseMatrix.from_dense(jnp.where(pattern, jac, 0.0), pattern)
+        x, lam, _ = solver.solve(mass, jac, theta[9:12], theta[12:14])
+        return jnp.sum(jnp.sin(x)) + jnp.sum(lam**2)
+
+    return loss
+
+
+@pytest.mark.parametrize("zero_mass", [False, True])
+def test_derivatives(zero_mass):
+    """jvp, grad and vmap(grad) against finite differences and `FullKKTLU`; with a
+    coupled zero mass the derivatives go through the general method."""
+    rng = np.random.default_rng(5)
+    pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
+    theta = jnp.asarray(rng.normal(size=14)).at[:3].set(jnp.array([1.0, 2.0, 0.7]))
+    if zero_mass:
+        theta = theta.at[2].set(0.0)
+    loss, loss_lu = _loss(AUTO, pattern), _loss(cjax.FullKKTLU(), pattern)
+    grad = jax.jit(jax.grad(loss))(theta)
+    np.testing.assert_allclose(grad, jax.grad(loss_lu)(theta), rtol=1e-9, atol=1e-10)
+    free = np.ones(14, bool)
+    free[2] = not zero_mass  # finite differences would step into negative mass
+    fd = finite_difference_grad(loss, theta)
+    np.testing.assert_allclose(grad[free], fd[free], rtol=1e-6, atol=1e-7)
+    tangent = jnp.asarray(rng.normal(size=14))
+    _, dout = jax.jvp(loss, (theta,), (tangent,))
+    np.testing.assert_allclose(dout, grad @ tangent, rtol=1e-10)
+    thetas = jnp.stack([theta, theta.at[0].set(1.5)])
+    grads = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
+    np.testing.assert_allclose(
+        grads, jax.vmap(jax.grad(loss_lu))(thetas), rtol=1e-9, atol=1e-10
+    )
+    hessian = jax.jacfwd(jax.grad(loss))(theta)
+    np.testing.assert_allclose(
+        hessian, jax.hessian(loss_lu)(theta), rtol=1e-7, atol=1e-8
+    )
