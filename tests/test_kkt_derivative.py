@@ -146,3 +146,51 @@ def test_second_derivatives_match_plain(name, inertia):
     ref = jax.hessian(plain)(p)
     _close(jax.jit(jax.hessian(custom))(p), ref, 1e-9)
     _close(jax.jit(jax.jacfwd(jax.jacfwd(custom)))(p), ref, 1e-9)
+
+
+# The default adjoint of `simulate` (`_adjoint.ForwardJacobianAdjoint`): reverse mode
+# by forward-mode tangents for a few inputs, by the fallback otherwise; the same
+# derivatives as `diffrax.RecursiveCheckpointAdjoint`.
+
+FINAL = cjax.SaveAt(t1=True, multipliers=False, energy=False, violation=False)
+
+
+def _final_state(adjoint):
+    """`(r, theta1)` at `t1 = 0.3` of the attached cylinders, as a function of
+    `(I, theta0, ...)`; `extra` further inputs enter the gravity (so that more than
+    `max_tangents` scalars are differentiated: they are also in `args`)."""
+
+    def fn(p):
+        args = {**cyl.default_args(), "I": p[0], "g": 9.81 + jnp.sum(p[2:] ** 2)}
+        args["extra"] = p[2:]  # unused by the Lagrangian, differentiated all the same
+        q0, qd0 = cyl.state(p[1], jnp.zeros_like(p[1]), args)
+        traj = cjax.simulate(
+            cyl.system(), (0.0, 0.3), q0, qd0, args, saveat=FINAL, adjoint=adjoint
+        )
+        return traj.q[-1, :2]
+
+    return fn
+
+
+def _inputs(extra: int = 0):
+    return jnp.concatenate([jnp.array([0.045, 0.3]), jnp.full((extra,), 0.1)])
+
+
+@pytest.mark.parametrize("extra", [0, 9], ids=["forward-mode", "fallback"])
+def test_default_adjoint_matches_recursive_checkpoint(extra):
+    """`jax.jacrev` and `jax.vmap(jax.grad)` with the default adjoint: 2 inputs (the
+    forward-mode path) and 11 (above `max_tangents`: the fallback)."""
+    import diffrax
+
+    from constrained_jax._adjoint import ForwardJacobianAdjoint
+
+    p = _inputs(extra)
+    ref = jax.jit(jax.jacrev(_final_state(diffrax.RecursiveCheckpointAdjoint())))(p)
+    _close(jax.jit(jax.jacrev(_final_state(None)))(p), ref, 1e-12)
+    forced = ForwardJacobianAdjoint(max_tangents=0)  # always the fallback
+    _close(jax.jit(jax.jacrev(_final_state(forced)))(p), ref, 1e-12)
+    batch = jnp.stack([p, p.at[1].add(0.1)])
+    theta1 = lambda adjoint: lambda p: _final_state(adjoint)(p)[1]
+    grads = jax.jit(jax.vmap(jax.grad(theta1(None))))(batch)
+    refs = jax.jit(jax.vmap(jax.grad(theta1(diffrax.RecursiveCheckpointAdjoint()))))
+    _close(grads, refs(batch), 1e-12)
