@@ -180,8 +180,8 @@ def simulate(
         `max_steps`), not changed.
     - `saveat`: a [`constrained_jax.SaveAt`][].
     - `adjoint`: how reverse-mode autodiff goes through the solve, a diffrax adjoint;
-        `None` (default) is chosen per case: `jax.grad` runs in forward mode when at
-        most 8 input scalars are differentiated and by
+        `None` (default) is chosen per case: `jax.grad` runs in forward mode when few
+        input scalars are differentiated (up to 16 for a small state) and by
         `diffrax.RecursiveCheckpointAdjoint()` otherwise (see
         `constrained_jax._adjoint` for the measurements). `jax.jvp` / `jax.jacfwd`
         need `diffrax.ForwardMode()`.

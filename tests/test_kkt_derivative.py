@@ -176,10 +176,10 @@ def _inputs(extra: int = 0):
     return jnp.concatenate([jnp.array([0.045, 0.3]), jnp.full((extra,), 0.1)])
 
 
-@pytest.mark.parametrize("extra", [0, 9], ids=["forward-mode", "fallback"])
+@pytest.mark.parametrize("extra", [0, 15], ids=["forward-mode", "fallback"])
 def test_default_adjoint_matches_recursive_checkpoint(extra):
     """`jax.jacrev` and `jax.vmap(jax.grad)` with the default adjoint: 2 inputs (the
-    forward-mode path) and 11 (above `max_tangents`: the fallback)."""
+    forward-mode path) and 17 (above `max_tangents`: the fallback)."""
     import diffrax
 
     from constrained_jax._adjoint import ForwardJacobianAdjoint
