@@ -7,7 +7,8 @@ turn, medians of the post-compilation times; `_common.time_jax_interleaved`):
    `t` in `[0, 0.8]`, Tsit5, `rtol = atol = 1e-8` as in `benchmarks/dynamics.py`):
    `theta1(t1)` by `cjax.simulate` against `jax.grad` of it with respect to `I`
    (`args["I"]`), with the default adjoint (`adjoint=None`: chosen per case,
-   `constrained_jax._adjoint`); and the same derivative in forward mode
+   `constrained_jax._adjoint`: forward-mode tangents for a few inputs), with
+   `diffrax.RecursiveCheckpointAdjoint()`, and the same derivative in forward mode
    (`adjoint=diffrax.ForwardMode()`, `jax.jvp`).
 2. **Two cylinders through the release** (`contact_system`, `t` in `[0, 1.2]`): the
    release time and `r(t1)` in free flight, and their gradients with respect to `I`
@@ -56,6 +57,7 @@ T1_RELEASE = 1.2
 TOL = 1e-8  # benchmarks/dynamics.py: JAX_TOLERANCES["cylinders"]
 NUM_EXTREMIZE = 10_000
 CATENARY = (0.0, 0.0, 1.0, 0.5, 2.0, 2.5)  # xl, yl, xr, yr, length, rho_g
+RECURSIVE = diffrax.RecursiveCheckpointAdjoint()  # the default before issue 12
 
 
 def _cylinder_run(system, t1, adjoint):
@@ -102,6 +104,7 @@ def cylinders_attached(repeats: int) -> dict:
     fns = {
         "forward": theta1(None),
         "grad (adjoint=None)": jax.grad(theta1(None)),
+        "grad (RecursiveCheckpoint)": jax.grad(theta1(RECURSIVE)),
         "jvp (ForwardMode)": lambda i: jax.jvp(
             theta1(diffrax.ForwardMode()), (i,), (jnp.ones_like(i),)
         ),
@@ -130,6 +133,7 @@ def cylinders_release(repeats: int) -> dict:
     fns = {
         "forward": outputs(None),
         "grad (adjoint=None)": jax.grad(summed(None)),
+        "grad (RecursiveCheckpoint)": jax.grad(summed(RECURSIVE)),
         "jvp (ForwardMode)": lambda i: jax.jvp(
             summed(diffrax.ForwardMode()), (i,), (jnp.ones_like(i),)
         ),

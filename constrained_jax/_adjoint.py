@@ -1,37 +1,198 @@
 """The adjoint of [`constrained_jax.simulate`][] when the user does not choose one.
 
 `simulate(..., adjoint=None)` (the default) calls `default_adjoint`, the one place
-where the adjoint is chosen per case. What was measured (`benchmarks/gradients.py`,
-two cylinders, `theta0 = 0.3`, Tsit5, `rtol = atol = 1e-8`), and why the choice is
-what it is:
+where the adjoint is chosen per case: `ForwardJacobianAdjoint`, which computes the
+reverse-mode derivative (`jax.grad`, `jax.vjp`, `jax.jacrev`) in forward mode when
+few inputs are differentiated, and by `diffrax.RecursiveCheckpointAdjoint()`
+otherwise. What was measured (`benchmarks/gradients.py`, two cylinders,
+`theta0 = 0.3`, Tsit5, `rtol = atol = 1e-8`, 16 steps), and why:
 
-- `diffrax.RecursiveCheckpointAdjoint()`: with `checkpoints=None` diffrax sizes the
-    checkpoints from `max_steps` (`O(sqrt(max_steps))`: 180 for `max_steps=16384`).
-    The attached run takes 16 steps and the release run 35 over its phases, so every
-    step is stored and computed once more in the backward pass; 16, 40 or 180
-    checkpoints give the same time for the attached run, and 1,365 (every step of a
-    long run of a small system) makes the release run 1.6x slower (larger buffers per
-    phase). The cost of the gradient (about 6x the solve attached, 6x-16x through
-    the release) is the reverse pass of each step itself: the Hessians and KKT solves
-    of seven stages and the loop bookkeeping, not recomputation. So diffrax's default
-    count is kept.
+- `diffrax.RecursiveCheckpointAdjoint()`: `jax.grad` of `theta1(t1)` with respect to
+    `I` costs about 5x the solve whatever the number of checkpoints (`checkpoints=None`
+    sizes them from `max_steps`, 180 for `max_steps=16384`, and stores every one of
+    the 16 steps; 1 to 180 checkpoints cost 4.6x-6.8x). The backward pass recomputes
+    each step and runs its reverse: about 40% is the reverse of the vector field
+    (the Hessians and the KKT solve of each stage; the KKT solve itself is
+    differentiated by its implicit rule, `_solver/kkt_derivative.py`), and the rest is
+    diffrax's loop machinery in reverse (the same share as for a two-line ODE, whose
+    gradient costs 4.7x its solve).
+- `diffrax.ForwardMode()` with `jax.jvp`: 1.4x the solve, and under `jax.vmap` over
+    tangents the cost hardly grows with their number for a state this small (1 to 32
+    tangents: 1.5x). `ForwardJacobianAdjoint` uses it under `jax.grad` too: with `p`
+    differentiated input scalars (counted at trace time, over the leaves actually
+    perturbed: `I` and three closed-over scalars for the attached phase, 15 with the
+    initial state and time of the free flight after the release), the forward pass
+    also pushes the `p` unit tangents through the solve (one batched `jax.jvp`) and
+    keeps the Jacobian of the final state; the backward pass is its product with the
+    cotangent. `jax.grad` with respect to `I` costs 1.3x-1.8x the solve attached
+    (7.3x before, with `RecursiveCheckpointAdjoint` and the elimination
+    differentiated) and 2.9x through the release (5.7x), and no checkpoints are
+    stored. Forward mode is used up to `p = 16` and `p` times the size of the state
+    up to 256 (a large system's tangents cost in proportion: about 0.4x the solve
+    each, against about 5x for the whole reverse pass); above that
+    `diffrax.RecursiveCheckpointAdjoint()` (whose cost does not grow with `p`).
 - `diffrax.BacksolveAdjoint` (the continuous adjoint) cannot be used: `simulate`
     saves through `diffrax.SaveAt(subs=...)` and stops at events (the release),
     neither of which it supports; nor are its gradients those of the discrete solve.
-- `diffrax.ForwardMode()`: a forward-mode tangent of the attached run (`jax.jvp`)
-    costs about 1.5x the solve, against about 6x for `jax.grad` in reverse mode. For
-    derivatives with respect to one or a few parameters, pass
-    `adjoint=diffrax.ForwardMode()` and use `jax.jvp` or `jax.jacfwd`.
+
+The derivatives are those of the discrete solve in every case (the same to
+round-off). Forward-mode autodiff (`jax.jvp`, `jax.jacfwd`) needs
+`adjoint=diffrax.ForwardMode()`, as with diffrax's own reverse-mode adjoints.
 """
 
 import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+
+class ForwardJacobianAdjoint(diffrax.AbstractAdjoint):
+    """Reverse-mode autodiff of `diffrax.diffeqsolve` by forward mode when few input
+    scalars are differentiated, by `fallback` otherwise.
+
+    At trace time the scalars of the solve's inputs that are differentiated (the
+    perturbed floating-point leaves of `args`, `y0`, the terms and the closures they
+    hold) are counted. At most `max_tangents` of them, and at most `max_tangent_size`
+    scalars of state tangents: the forward pass runs
+    `diffrax.ForwardMode()` with their `p` unit tangents batched (the Jacobian of the
+    final state, `p` tangents of it, is the only residual) and the backward pass
+    contracts it with the cotangent. More: `fallback` (by default
+    `diffrax.RecursiveCheckpointAdjoint()`). Without differentiation it is the plain
+    solve.
+
+    **Arguments:**
+
+    - `max_tangents`: the most differentiated scalars done in forward mode.
+    - `max_tangent_size`: the most scalars of state tangents (differentiated scalars
+        times the size of the state) done in forward mode.
+    - `fallback`: the adjoint above these.
+    """
+
+    max_tangents: int = eqx.field(static=True, default=16)
+    max_tangent_size: int = eqx.field(static=True, default=256)
+    fallback: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint()
+
+    def loop(self, **kwargs):
+        dynamic, static = eqx.partition(kwargs, eqx.is_inexact_array)
+
+        def forward(dynamic_):
+            return diffrax.ForwardMode().loop(**eqx.combine(dynamic_, static))
+
+        def reverse(dynamic_):
+            return self.fallback.loop(**eqx.combine(dynamic_, static))
+
+        # Closure conversion makes every array the loop closes over (in the vector
+        # field, the events) an input, so that `perturbed` sees it.
+        forward = eqx.filter_closure_convert(forward, dynamic)
+        reverse = eqx.filter_closure_convert(reverse, dynamic)
+        state_size = sum(np.size(y) for y in jtu.tree_leaves(kwargs["init_state"].y))
+        most = min(self.max_tangents, self.max_tangent_size // max(state_size, 1))
+        return _loop((forward, reverse, dynamic), most)
+
+
+@eqx.filter_custom_vjp
+def _loop(vjp_arg, max_tangents):
+    forward, _, dynamic = vjp_arg
+    return forward(dynamic)
+
+
+def _differentiated(perturbed, vjp_arg, which: int):
+    """`(solve, inputs, chosen)`: the perturbed leaves `inputs` of the solve `which`
+    (0: forward mode, 1: the fallback) and of the loop's arrays, `solve` as a function
+    of them, and the flags of those leaves among the leaves of `vjp_arg`."""
+    fn, dynamic = vjp_arg[which], vjp_arg[2]
+    leaves, treedef = jtu.tree_flatten((fn, dynamic))
+    flags = jtu.tree_leaves((perturbed[which], perturbed[2]))
+    inputs = [x for x, f in zip(leaves, flags, strict=True) if f]
+
+    def solve(values):
+        values = iter(values)
+        full = [next(values) if f else x for x, f in zip(leaves, flags, strict=True)]
+        fn_, dynamic_ = jtu.tree_unflatten(treedef, full)
+        return fn_(dynamic_)
+
+    chosen = [
+        jtu.tree_map(lambda f: f and which == 0, perturbed[0]),
+        jtu.tree_map(lambda f: f and which == 1, perturbed[1]),
+        perturbed[2],
+    ]
+    return solve, inputs, chosen
+
+
+def _forward_mode(perturbed, vjp_arg, max_tangents: int) -> bool:
+    _, inputs, _ = _differentiated(perturbed, vjp_arg, 0)
+    return sum(int(np.size(x)) for x in inputs) <= max_tangents
+
+
+@_loop.def_fwd
+def _loop_fwd(perturbed, vjp_arg, max_tangents):
+    if not _forward_mode(perturbed, vjp_arg, max_tangents):
+        solve, inputs, _ = _differentiated(perturbed, vjp_arg, 1)
+        return jax.vjp(solve, inputs)
+    solve, inputs, _ = _differentiated(perturbed, vjp_arg, 0)
+    count = sum(int(np.size(x)) for x in inputs)
+    ends = np.cumsum([int(np.size(x)) for x in inputs])
+
+    def column(i):
+        basis = jnp.arange(count) == i
+        tangents = [
+            basis[end - x.size : end].reshape(x.shape).astype(x.dtype)
+            for x, end in zip(inputs, ends, strict=True)
+        ]
+        return jax.jvp(solve, (inputs,), (tangents,))
+
+    return jax.vmap(column, out_axes=(None, 0))(jnp.arange(count))
+
+
+@_loop.def_bwd
+def _loop_bwd(residuals, grad_out, perturbed, vjp_arg, max_tangents):
+    forward = _forward_mode(perturbed, vjp_arg, max_tangents)
+    _, inputs, chosen = _differentiated(perturbed, vjp_arg, 0 if forward else 1)
+    if forward:
+        # The Jacobian (a leading axis of tangents on every leaf of the final state)
+        # against the cotangent, with `None` for the leaves not differentiated.
+        def contract(g, j):
+            if g is None or j.dtype == jax.dtypes.float0:
+                return None
+            return jnp.tensordot(j, g, axes=g.ndim)
+
+        terms = jtu.tree_leaves(
+            jtu.tree_map(contract, grad_out, residuals, is_leaf=_none)
+        )
+        flat = sum(terms) if terms else jnp.zeros(sum(x.size for x in inputs))
+        ends = np.cumsum([int(np.size(x)) for x in inputs])
+        grads = [
+            flat[end - x.size : end].reshape(x.shape).astype(x.dtype)
+            for x, end in zip(inputs, ends, strict=True)
+        ]
+    else:
+        solve, _, _ = _differentiated(perturbed, vjp_arg, 1)
+        shapes = jax.eval_shape(solve, inputs)
+        (grads,) = residuals(jtu.tree_map(_cotangent, grad_out, shapes, is_leaf=_none))
+    grads = iter(grads)
+    return jtu.tree_map(lambda c: next(grads) if c else None, tuple(chosen))
+
+
+def _none(x) -> bool:
+    return x is None
+
+
+def _cotangent(g, shape):
+    """The cotangent `jax.vjp` takes for an output leaf: `g`, or a zero if `None`."""
+    if shape is None:
+        return None
+    if not jnp.issubdtype(shape.dtype, jnp.inexact):
+        return np.zeros(shape.shape, jax.dtypes.float0)
+    return jnp.zeros(shape.shape, shape.dtype) if g is None else g
 
 
 def default_adjoint(
     adjoint: diffrax.AbstractAdjoint | None,
 ) -> diffrax.AbstractAdjoint:
     """`adjoint` itself if given; otherwise the adjoint chosen for this case
-    (`diffrax.RecursiveCheckpointAdjoint()`, see the module's docstring).
+    (`ForwardJacobianAdjoint()`, see the module's docstring).
 
     **Arguments:**
 
@@ -40,7 +201,7 @@ def default_adjoint(
     **Returns:** a diffrax adjoint.
     """
     if adjoint is None:
-        return diffrax.RecursiveCheckpointAdjoint()
+        return ForwardJacobianAdjoint()
     if not isinstance(adjoint, diffrax.AbstractAdjoint):
         raise ValueError(
             "`adjoint` must be a diffrax adjoint, e.g. "

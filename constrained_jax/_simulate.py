@@ -180,10 +180,11 @@ def simulate(
         `max_steps`), not changed.
     - `saveat`: a [`constrained_jax.SaveAt`][].
     - `adjoint`: how reverse-mode autodiff goes through the solve, a diffrax adjoint;
-        `None` (default) is chosen per case (today always
-        `diffrax.RecursiveCheckpointAdjoint()`; see `constrained_jax._adjoint` for
-        the measurements). For derivatives with respect to a few parameters,
-        `diffrax.ForwardMode()` with `jax.jvp` / `jax.jacfwd` is cheaper.
+        `None` (default) is chosen per case: `jax.grad` runs in forward mode when few
+        input scalars are differentiated (up to 16 for a small state) and by
+        `diffrax.RecursiveCheckpointAdjoint()` otherwise (see
+        `constrained_jax._adjoint` for the measurements). `jax.jvp` / `jax.jacfwd`
+        need `diffrax.ForwardMode()`.
     - `progress_meter`: diffrax's progress meter for a long single run, e.g.
         `diffrax.TqdmProgressMeter()` (a bar per phase when a `Unilateral`
         constraint releases; refused by the variational integrator, which is not a

@@ -28,6 +28,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
 from ._misc import inexact_asarray
+from ._solver import kkt_derivative
 from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
 from ._solver.sparse import SparseMatrix
 from ._solver.sparse_schur import SparseSchur
@@ -425,7 +426,10 @@ class LagrangianSystem(eqx.Module):
         mass, rhs, jac, bias, mismatch = self._equations(q, qd, t, args)
         if bias_correction is not None:
             bias = bias + bias_correction
-        qdd, lam, singular = self.saddle_point_solver.solve(mass, jac, rhs, bias)
+        # Differentiated by the implicit rule, not through the elimination.
+        qdd, lam, singular = kkt_derivative.solve(
+            self.saddle_point_solver, mass, jac, rhs, bias
+        )
         n = qdd.shape[0]
         sol = jnp.where(mismatch, 0.0, jnp.concatenate([qdd, lam]))
         return sol[:n], sol[n:], singular, mismatch

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import constrained_jax as cjax
-from constrained_jax._adjoint import default_adjoint
+from constrained_jax._adjoint import default_adjoint, ForwardJacobianAdjoint
 from constrained_jax.scenes import two_cylinders as cyl
 
 from .helpers import finite_difference_grad
@@ -22,7 +22,9 @@ FINAL = cjax.SaveAt(t1=True, multipliers=False, energy=False, violation=False)
 def test_default_adjoint_is_chosen_per_case():
     mine = diffrax.RecursiveCheckpointAdjoint(checkpoints=7)
     assert default_adjoint(mine) is mine
-    assert isinstance(default_adjoint(None), diffrax.RecursiveCheckpointAdjoint)
+    chosen = default_adjoint(None)
+    assert isinstance(chosen, ForwardJacobianAdjoint)
+    assert isinstance(chosen.fallback, diffrax.RecursiveCheckpointAdjoint)
     with pytest.raises(ValueError, match="diffrax adjoint"):
         default_adjoint("backsolve")
 
