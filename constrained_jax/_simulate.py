@@ -801,7 +801,9 @@ class _AbstractDriver(eqx.Module):
     def run(self, system, t0, t1, q0, qd0, args, ts, **options) -> _Run:
         """Integrate from `(q0, qd0)` at `t0` to `t1`, saving at `ts`; `options` are
         `simulate`'s `stabilization`, `stepsize_controller`, `dt0`, `max_steps`,
-        `adjoint` and `progress_meter`."""
+        `adjoint` and `progress_meter`, and `ends`: `(save t0, save t1)` when `ts`
+        is only those ends (a driver may then save them more cheaply), else
+        `None`."""
 
 
 class _DiffraxDriver(_AbstractDriver):
@@ -812,7 +814,7 @@ class _DiffraxDriver(_AbstractDriver):
     def check(self, system, stabilization, dt0, progress_meter):
         pass  # Every stabilization, release events and progress meters.
 
-    def run(self, system, t0, t1, q0, qd0, args, ts, **options):
+    def run(self, system, t0, t1, q0, qd0, args, ts, *, ends=None, **options):
         phase = functools.partial(_run_phase, args=args, solver=self.solver, **options)
         found = _find_unilateral(system)
         if found is not None:
@@ -824,8 +826,20 @@ class _DiffraxDriver(_AbstractDriver):
                 phase, system, found, t0, t1, q0, qd0, args, ts, adaptive
             )
         diverged_event = diffrax.Event(_diverged_condition(system, q0, t0, args))
-        one = phase(system, t0, t1, (q0, qd0), ts, diverged_event)
-        q, qd = one.saved
+        if ends is None:
+            one = phase(system, t0, t1, (q0, qd0), ts, diverged_event)
+            q, qd = one.saved
+        else:
+            # Only the ends are saved: diffrax's own `t0`/`t1` saves, not a save
+            # loop over `ts` (a smaller program). As for `ts`, an end not reached
+            # (a run stopped early) is `inf`.
+            one = phase(system, t0, t1, (q0, qd0), None, diverged_event)
+            reached = one.t_end == t1
+            saved_end = jax.tree.map(
+                lambda x: jnp.where(reached, x, jnp.inf), (one.q_end, one.qd_end)
+            )
+            saved = ([(q0, qd0)] if ends[0] else []) + ([saved_end] if ends[1] else [])
+            q, qd = (jnp.stack(xs) for xs in zip(*saved, strict=True))
         result = RESULTS.where(
             one.result == diffrax.RESULTS.event_occurred,
             RESULTS.diverged,
@@ -865,7 +879,7 @@ class _VariationalDriver(_AbstractDriver):
             )
 
     def run(self, system, t0, t1, q0, qd0, args, ts, *, dt0, max_steps, **options):
-        del options  # Checked in `check`: nothing else to honour.
+        del options  # Checked in `check` (or `ends`, not needed): nothing to honour.
         variational = integrate_variational(
             self.integrator,
             system,
@@ -1079,6 +1093,7 @@ def _simulate(
         max_steps=max_steps,
         adjoint=adjoint,
         progress_meter=progress_meter,
+        ends=(saveat.t0, saveat.t1) if saveat.ts is None else None,
     )
     phases = run.phases
     # Saved states between steps are interpolated: the stabilization may correct them

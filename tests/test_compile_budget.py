@@ -1,0 +1,75 @@
+"""Structural facts of the compiled `simulate` program (no timings: those are in
+benchmarks/compile_time.py), and that the smaller program gives the same answers."""
+
+import diffrax
+import jax
+import jax.extend as jex
+import jax.numpy as jnp
+import numpy as np
+
+import constrained_jax as cjax
+from constrained_jax.scenes import pendulum
+
+
+def _run(saveat, max_steps=4096):
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+
+    def run(q0, qd0, args):
+        return cjax.simulate(
+            pendulum.system(),
+            (0.0, 1.3),
+            q0,
+            qd0,
+            args,
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            saveat=saveat,
+            max_steps=max_steps,
+            throw=False,
+        )
+
+    return run, (q0, qd0, args)
+
+
+def _num_while(jaxpr) -> int:
+    """`while` loops in a closed jaxpr, nested ones included."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == "while"
+        for sub in jex.core.jaxprs_in_params(eqn.params):
+            count += _num_while(sub)
+    return count
+
+
+def test_saving_only_the_ends_has_no_save_loop():
+    # `SaveAt(t0=True, t1=True)` uses diffrax's own end saves, not the loop that
+    # interpolates at save times: one `while` fewer than the same times as `ts`.
+    ends, inputs = _run(cjax.SaveAt(t0=True, t1=True))
+    grid, _ = _run(cjax.SaveAt(ts=jnp.asarray([0.0, 1.3])))
+    num_ends = _num_while(jax.make_jaxpr(ends)(*inputs).jaxpr)
+    num_grid = _num_while(jax.make_jaxpr(grid)(*inputs).jaxpr)
+    assert num_ends == num_grid - 1
+
+
+def test_saving_only_the_ends_matches_the_grid():
+    for max_steps in (4096, 3):  # a full run, and one stopped at `max_steps`
+        ends, inputs = _run(cjax.SaveAt(t0=True, t1=True), max_steps)
+        grid, _ = _run(cjax.SaveAt(ts=jnp.asarray([0.0, 1.3])), max_steps)
+        a, b = jax.jit(ends)(*inputs), jax.jit(grid)(*inputs)
+        assert a.result == b.result
+        assert (a.result == cjax.RESULTS.successful) == (max_steps > 3)
+        np.testing.assert_array_equal(a.ts, b.ts)
+        for x, y in [
+            (a.q, b.q),
+            (a.qd, b.qd),
+            (a.multipliers, b.multipliers),
+            (a.energy, b.energy),
+            (a.violation["position"], b.violation["position"]),
+        ]:
+            # The end not reached is `inf` in both.
+            np.testing.assert_array_equal(np.isinf(x), np.isinf(y))
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+        # Only the ends: `t1` alone too.
+        last, _ = _run(cjax.SaveAt(t1=True), max_steps)
+        c = jax.jit(last)(*inputs)
+        np.testing.assert_allclose(c.q, a.q[1:], rtol=1e-12, atol=1e-12)
