@@ -113,13 +113,28 @@ def consistent_initial_state(
     return project_state(system, q0, qd0, jnp.asarray(t0, q0.dtype), args, iterations)
 
 
+@eqx.filter_jit
+def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
+    """`system.solve_accelerations`, traced once per system and shapes.
+
+    Each trace of the equations of motion adds a copy of the derivatives of the
+    Lagrangian to the traced program; one run calls them at many places (the vector
+    field in diffrax's initial step and in the stages, the release event, the watched
+    multiplier, the saved multipliers, the singular check), some of which diffrax
+    traces more than once. Under `jit` the later calls reuse the first trace (and XLA
+    inlines the calls, so the compiled program is the same)."""
+    return system.solve_accelerations(
+        q, qd, jnp.asarray(t, q.dtype), args, bias_correction
+    )
+
+
 def _field_and_multipliers(system, stabilization):
     """`(t, (q, qdot), args) -> ((qdot, qddot), lambda)`: one KKT solve."""
 
     def field(t, y, args):
         q, qd = y
         correction = stabilization.bias_correction(system, q, qd, t, args)
-        qdd, lam, singular = system.solve_accelerations(q, qd, t, args, correction)
+        qdd, lam, singular = _solve_accelerations(system, q, qd, t, args, correction)
         # A singular KKT matrix makes the step fail (NaN rejected by the controller);
         # the status is recovered afterwards at the saved states.
         qdd = jnp.where(singular, jnp.nan, qdd)
@@ -932,7 +947,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
 
     def contact_force(t, y, args, **kwargs):
         del kwargs
-        _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
+        _, lam, _ = _solve_accelerations(system, y[0], y[1], t, args)
         return watched(lam)
 
     force_at_start = contact_force(t0, (q0, qd0), args)
@@ -1111,7 +1126,7 @@ def _simulate(
         last state reached (one traced solve for all of them)."""
 
         def one(q_, qd_, t_):
-            _, lam, singular = sys_.solve_accelerations(q_, qd_, t_, args)
+            _, lam, singular = _solve_accelerations(sys_, q_, qd_, t_, args)
             if keep_rows is not None:
                 lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
             return lam, singular
@@ -1162,8 +1177,8 @@ def _simulate(
         reached = jnp.all(jnp.isfinite(q), axis=1)
         singular = singular_end | jnp.any(extra["singular"] & reached)
     else:
-        _, _, singular = end_system.solve_accelerations(
-            run.q_end, run.qd_end, run.t_end, args
+        _, _, singular = _solve_accelerations(
+            end_system, run.q_end, run.qd_end, run.t_end, args
         )
     result = RESULTS.where(
         singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
