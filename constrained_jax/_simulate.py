@@ -113,7 +113,6 @@ def consistent_initial_state(
     return project_state(system, q0, qd0, jnp.asarray(t0, q0.dtype), args, iterations)
 
 
-@eqx.filter_jit
 def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
     """`system.solve_accelerations`, traced once per system and shapes.
 
@@ -122,10 +121,15 @@ def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
     field in diffrax's initial step and in the stages, the release event, the watched
     multiplier, the saved multipliers, the singular check), some of which diffrax
     traces more than once. Under `jit` the later calls reuse the first trace (and XLA
-    inlines the calls, so the compiled program is the same)."""
-    return system.solve_accelerations(
-        q, qd, jnp.asarray(t, q.dtype), args, bias_correction
-    )
+    inlines the calls, so the compiled program is the same). `t` is cast to the dtype
+    of `q` (not weakly typed) so that every call site has the same signature."""
+    t = jnp.asarray(t, q.dtype)
+    return _jit_solve_accelerations(system, q, qd, t, args, bias_correction)
+
+
+@eqx.filter_jit
+def _jit_solve_accelerations(system, q, qd, t, args, bias_correction):
+    return system.solve_accelerations(q, qd, t, args, bias_correction)
 
 
 def _field_and_multipliers(system, stabilization):

@@ -2,13 +2,14 @@
 benchmarks/compile_time.py), and that the smaller program gives the same answers."""
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.extend as jex
 import jax.numpy as jnp
 import numpy as np
 
 import constrained_jax as cjax
-from constrained_jax.scenes import pendulum
+from constrained_jax.scenes import pendulum, two_cylinders as cyl2
 
 
 def _run(saveat, max_steps=4096):
@@ -73,3 +74,56 @@ def test_saving_only_the_ends_matches_the_grid():
         last, _ = _run(cjax.SaveAt(t1=True), max_steps)
         c = jax.jit(last)(*inputs)
         np.testing.assert_allclose(c.q, a.q[1:], rtol=1e-12, atol=1e-12)
+
+
+def _fresh(system):
+    """`system` with a new Lagrangian function object: nothing of it is cached yet."""
+
+    def lagrangian(q, qd, t, args):
+        return system.lagrangian(q, qd, t, args)
+
+    return eqx.tree_at(lambda s: s.lagrangian, system, lagrangian)
+
+
+def _count_equations(monkeypatch, fn, *inputs) -> int:
+    """How many times tracing `fn` traces the equations of motion of a system."""
+    calls = []
+    original = cjax.LagrangianSystem._equations
+
+    def counted(self, *args):
+        calls.append(None)
+        return original(self, *args)
+
+    monkeypatch.setattr(cjax.LagrangianSystem, "_equations", counted)
+    # (In JAX's default promotion mode: diffrax checks the vector field in the
+    # "standard" one, which would otherwise be a second trace under the tests'
+    # "strict" mode.)
+    with jax.numpy_dtype_promotion("standard"):
+        jax.make_jaxpr(fn)(*inputs)
+    return len(calls)
+
+
+def test_equations_traced_once_per_system(monkeypatch):
+    # Each trace of the equations adds a copy of the derivatives of the Lagrangian to
+    # the traced program: the vector field (diffrax's initial step, the stages), the
+    # release event, the watched multiplier, the saved multipliers and the singular
+    # check all reuse one trace per system (the attached and the free one).
+    args = cyl2.default_args()
+    q0, qd0 = cyl2.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    for system, num_systems in ((cyl2.system(), 1), (cyl2.contact_system(), 2)):
+        system = _fresh(system)
+
+        def run(q0, qd0, args, system=system):
+            return cjax.simulate(
+                system,
+                (0.0, 1.5),
+                q0,
+                qd0,
+                args,
+                stepsize_controller=controller,
+                saveat=cjax.SaveAt(ts=jnp.linspace(0.0, 1.5, 4)),
+                throw=False,
+            )
+
+        assert _count_equations(monkeypatch, run, q0, qd0, args) == num_systems
