@@ -849,15 +849,20 @@ class _DiffraxDriver(_AbstractDriver):
             one = phase(system, t0, t1, (q0, qd0), ts, diverged_event)
             q, qd = one.saved
         else:
-            # Only the ends are saved: diffrax's own `t0`/`t1` saves, not a save
-            # loop over `ts` (a smaller program). As for `ts`, an end not reached
-            # (a run stopped early) is `inf`.
+            # Only the ends are saved: from the last state reached, not by a save
+            # loop over `ts` (a smaller program). As diffrax saves `ts`, an end not
+            # reached is `inf`: `t1` if the run stopped early, `t0` too if it
+            # stopped before its first accepted step.
             one = phase(system, t0, t1, (q0, qd0), None, diverged_event)
             reached = one.t_end == t1
-            saved_end = jax.tree.map(
-                lambda x: jnp.where(reached, x, jnp.inf), (one.q_end, one.qd_end)
-            )
-            saved = ([(q0, qd0)] if ends[0] else []) + ([saved_end] if ends[1] else [])
+            started = reached | (one.stats["num_accepted_steps"] > 0)
+
+            def mask(saved, ok):
+                return jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf), saved)
+
+            saved = [mask((q0, qd0), started)] if ends[0] else []
+            if ends[1]:
+                saved.append(mask((one.q_end, one.qd_end), reached))
             q, qd = (jnp.stack(xs) for xs in zip(*saved, strict=True))
         result = RESULTS.where(
             one.result == diffrax.RESULTS.event_occurred,

@@ -12,7 +12,7 @@ import constrained_jax as cjax
 from constrained_jax.scenes import pendulum, two_cylinders as cyl2
 
 
-def _run(saveat, max_steps=4096):
+def _run(saveat, max_steps=4096, dt0=None):
     args = pendulum.default_args()
     q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
 
@@ -26,6 +26,7 @@ def _run(saveat, max_steps=4096):
             stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
             saveat=saveat,
             max_steps=max_steps,
+            dt0=dt0,
             throw=False,
         )
 
@@ -53,12 +54,15 @@ def test_saving_only_the_ends_has_no_save_loop():
 
 
 def test_saving_only_the_ends_matches_the_grid():
-    for max_steps in (4096, 3):  # a full run, and one stopped at `max_steps`
-        ends, inputs = _run(cjax.SaveAt(t0=True, t1=True), max_steps)
-        grid, _ = _run(cjax.SaveAt(ts=jnp.asarray([0.0, 1.3])), max_steps)
+    # A full run, one stopped at `max_steps`, and one stopped before its first
+    # accepted step (both ends `inf`, as diffrax leaves save times not reached).
+    for max_steps, dt0 in ((4096, None), (3, None), (1, 1.0)):
+        ends, inputs = _run(cjax.SaveAt(t0=True, t1=True), max_steps, dt0)
+        grid, _ = _run(cjax.SaveAt(ts=jnp.asarray([0.0, 1.3])), max_steps, dt0)
         a, b = jax.jit(ends)(*inputs), jax.jit(grid)(*inputs)
         assert a.result == b.result
         assert (a.result == cjax.RESULTS.successful) == (max_steps > 3)
+        assert np.all(np.isinf(a.q[0])) == (dt0 is not None)
         np.testing.assert_array_equal(a.ts, b.ts)
         for x, y in [
             (a.q, b.q),
@@ -71,7 +75,7 @@ def test_saving_only_the_ends_matches_the_grid():
             np.testing.assert_array_equal(np.isinf(x), np.isinf(y))
             np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
         # Only the ends: `t1` alone too.
-        last, _ = _run(cjax.SaveAt(t1=True), max_steps)
+        last, _ = _run(cjax.SaveAt(t1=True), max_steps, dt0)
         c = jax.jit(last)(*inputs)
         np.testing.assert_allclose(c.q, a.q[1:], rtol=1e-12, atol=1e-12)
 
