@@ -69,7 +69,7 @@ class _Counted:
         self.module.lagrangian = self.original
 
 
-def _cylinders_attached():
+def _cylinders_attached(saveat=cjax.SaveAt(t1=True)):
     args = cylinders_scene.default_args()
     q0, qd0 = cylinders_scene.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
 
@@ -82,7 +82,7 @@ def _cylinders_attached():
             args,
             solver=diffrax.Tsit5(),
             stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
-            saveat=cjax.SaveAt(t1=True),
+            saveat=saveat,
         )
 
     return cylinders_scene, run, (q0, qd0, args)
@@ -90,22 +90,9 @@ def _cylinders_attached():
 
 def _cylinders_lean():
     # (a) with `benchmarks/dynamics.py`'s `SaveAt`: nothing derived is computed.
-    module, run, inputs = _cylinders_attached()
-    lean = cjax.SaveAt(t1=True, multipliers=False, energy=False, violation=False)
-
-    def run_lean(q0, qd0, args):
-        return cjax.simulate(
-            cylinders_scene.system(),
-            (0.0, 0.8),
-            q0,
-            qd0,
-            args,
-            solver=diffrax.Tsit5(),
-            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
-            saveat=lean,
-        )
-
-    return module, run_lean, inputs
+    return _cylinders_attached(
+        cjax.SaveAt(t1=True, multipliers=False, energy=False, violation=False)
+    )
 
 
 def _cylinders_floor():
