@@ -1,6 +1,8 @@
 """Where the compile time of `simulate` goes.
 
-For three programs -- (a) `jit(simulate)` of the two cylinders, attached (Tsit5), (b)
+For three programs -- (a) `jit(simulate)` of the two cylinders, attached (Tsit5) (and
+(a') the same without the derived quantities, as `benchmarks/dynamics.py` saves, and
+its floor: a plain `diffrax.diffeqsolve` of the hand-written right-hand side), (b)
 the tour's two-cylinder program with the release event, (c) the tour's pendulum
 program (Tsit5) -- reports the seconds of tracing + lowering
 (`jax.jit(fn).lower(...)`) and of XLA's compilation (`.compile()`), wall clock and
@@ -10,7 +12,7 @@ times the Lagrangian is traced (calls of a Python wrapper around it while tracin
 Medians of `--repeats` runs, `jax.clear_caches()` before each (and no persistent
 compilation cache).
 
-    python benchmarks/compile_time.py [--repeats 3] [--only a,b,c]
+    python benchmarks/compile_time.py [--repeats 3] [--only a,a',floor,b,c]
 
 Writes `benchmarks/results/compile_time.json`.
 """
@@ -67,7 +69,7 @@ class _Counted:
         self.module.lagrangian = self.original
 
 
-def _cylinders_attached():
+def _cylinders_attached(saveat=cjax.SaveAt(t1=True)):
     args = cylinders_scene.default_args()
     q0, qd0 = cylinders_scene.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
 
@@ -80,10 +82,46 @@ def _cylinders_attached():
             args,
             solver=diffrax.Tsit5(),
             stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
-            saveat=cjax.SaveAt(t1=True),
+            saveat=saveat,
         )
 
     return cylinders_scene, run, (q0, qd0, args)
+
+
+def _cylinders_lean():
+    # (a) with `benchmarks/dynamics.py`'s `SaveAt`: nothing derived is computed.
+    return _cylinders_attached(
+        cjax.SaveAt(t1=True, multipliers=False, energy=False, violation=False)
+    )
+
+
+def _cylinders_floor():
+    # The floor: a plain `diffrax.diffeqsolve` of the hand-written right-hand side,
+    # with the solver, controller and saves of (a').
+    from dynamics import cylinders_accelerations_by_hand
+
+    module, _, inputs = _cylinders_attached()
+
+    def field(t, y, args):
+        q, qd = y
+        return qd, cylinders_accelerations_by_hand(q, qd, args)[0]
+
+    def run(q0, qd0, args):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field),
+            diffrax.Tsit5(),
+            0.0,
+            0.8,
+            None,
+            (q0, qd0),
+            args,
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            saveat=diffrax.SaveAt(t1=True),
+            throw=False,
+        )
+        return sol
+
+    return module, run, inputs
 
 
 def _cylinders_release():
@@ -101,6 +139,8 @@ def _pendulum():
 
 CASES = {
     "a": ("two cylinders attached, Tsit5", _cylinders_attached),
+    "a'": ("two cylinders attached, Tsit5, nothing derived saved", _cylinders_lean),
+    "floor": ("floor of (a'): diffeqsolve of the hand-written field", _cylinders_floor),
     "b": ("two cylinders with the release event (tour)", _cylinders_release),
     "c": ("pendulum, Tsit5 (tour)", _pendulum),
 }
@@ -140,7 +180,9 @@ def measure(make, repeats: int) -> dict:
             }
         )
         out = jax.block_until_ready(compiled(*inputs))
-        assert out.result == cjax.RESULTS.successful, cjax.RESULTS[out.result]
+        plain = isinstance(out, diffrax.Solution)
+        success = (diffrax if plain else cjax).RESULTS.successful
+        assert out.result == success, out.result
     summary = {
         key: statistics.median(run[key] for run in runs)
         for key in ("trace_lower_s", "compile_s", "trace_lower_cpu_s", "compile_cpu_s")
@@ -154,7 +196,7 @@ def measure(make, repeats: int) -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--only", default="a,b,c")
+    parser.add_argument("--only", default="a,a',floor,b,c")
     parser.add_argument("--out", type=Path, default=RESULTS)
     ns = parser.parse_args()
     jax.config.update("jax_enable_compilation_cache", False)

@@ -113,13 +113,32 @@ def consistent_initial_state(
     return project_state(system, q0, qd0, jnp.asarray(t0, q0.dtype), args, iterations)
 
 
+def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
+    """`system.solve_accelerations`, traced once per system and shapes.
+
+    Each trace of the equations of motion adds a copy of the derivatives of the
+    Lagrangian to the traced program; one run calls them at many places (the vector
+    field in diffrax's initial step and in the stages, the release event, the watched
+    multiplier, the saved multipliers, the singular check), some of which diffrax
+    traces more than once. Under `jit` the later calls reuse the first trace (and XLA
+    inlines the calls, so the compiled program is the same). `t` is cast to the dtype
+    of `q` (not weakly typed) so that every call site has the same signature."""
+    t = jnp.asarray(t, q.dtype)
+    return _jit_solve_accelerations(system, q, qd, t, args, bias_correction)
+
+
+@eqx.filter_jit
+def _jit_solve_accelerations(system, q, qd, t, args, bias_correction):
+    return system.solve_accelerations(q, qd, t, args, bias_correction)
+
+
 def _field_and_multipliers(system, stabilization):
     """`(t, (q, qdot), args) -> ((qdot, qddot), lambda)`: one KKT solve."""
 
     def field(t, y, args):
         q, qd = y
         correction = stabilization.bias_correction(system, q, qd, t, args)
-        qdd, lam, singular = system.solve_accelerations(q, qd, t, args, correction)
+        qdd, lam, singular = _solve_accelerations(system, q, qd, t, args, correction)
         # A singular KKT matrix makes the step fail (NaN rejected by the controller);
         # the status is recovered afterwards at the saved states.
         qdd = jnp.where(singular, jnp.nan, qdd)
@@ -802,7 +821,9 @@ class _AbstractDriver(eqx.Module):
     def run(self, system, t0, t1, q0, qd0, args, ts, **options) -> _Run:
         """Integrate from `(q0, qd0)` at `t0` to `t1`, saving at `ts`; `options` are
         `simulate`'s `stabilization`, `stepsize_controller`, `dt0`, `max_steps`,
-        `adjoint` and `progress_meter`."""
+        `adjoint` and `progress_meter`, and `ends`: `(save t0, save t1)` when `ts`
+        is only those ends (a driver may then save them more cheaply), else
+        `None`."""
 
 
 class _DiffraxDriver(_AbstractDriver):
@@ -813,7 +834,7 @@ class _DiffraxDriver(_AbstractDriver):
     def check(self, system, stabilization, dt0, progress_meter):
         pass  # Every stabilization, release events and progress meters.
 
-    def run(self, system, t0, t1, q0, qd0, args, ts, **options):
+    def run(self, system, t0, t1, q0, qd0, args, ts, *, ends=None, **options):
         phase = functools.partial(_run_phase, args=args, solver=self.solver, **options)
         found = _find_unilateral(system)
         if found is not None:
@@ -825,8 +846,25 @@ class _DiffraxDriver(_AbstractDriver):
                 phase, system, found, t0, t1, q0, qd0, args, ts, adaptive
             )
         diverged_event = diffrax.Event(_diverged_condition(system, q0, t0, args))
-        one = phase(system, t0, t1, (q0, qd0), ts, diverged_event)
-        q, qd = one.saved
+        if ends is None:
+            one = phase(system, t0, t1, (q0, qd0), ts, diverged_event)
+            q, qd = one.saved
+        else:
+            # Only the ends are saved: from the last state reached, not by a save
+            # loop over `ts` (a smaller program). As diffrax saves `ts`, an end not
+            # reached is `inf`: `t1` if the run stopped early, `t0` too if it
+            # stopped before its first accepted step.
+            one = phase(system, t0, t1, (q0, qd0), None, diverged_event)
+            reached = one.t_end == t1
+            started = reached | (one.stats["num_accepted_steps"] > 0)
+
+            def mask(saved, ok):
+                return jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf), saved)
+
+            saved = [mask((q0, qd0), started)] if ends[0] else []
+            if ends[1]:
+                saved.append(mask((one.q_end, one.qd_end), reached))
+            q, qd = (jnp.stack(xs) for xs in zip(*saved, strict=True))
         result = RESULTS.where(
             one.result == diffrax.RESULTS.event_occurred,
             RESULTS.diverged,
@@ -866,7 +904,7 @@ class _VariationalDriver(_AbstractDriver):
             )
 
     def run(self, system, t0, t1, q0, qd0, args, ts, *, dt0, max_steps, **options):
-        del options  # Checked in `check`: nothing else to honour.
+        del options  # Checked in `check` (or `ends`, not needed): nothing to honour.
         variational = integrate_variational(
             self.integrator,
             system,
@@ -919,7 +957,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
 
     def contact_force(t, y, args, **kwargs):
         del kwargs
-        _, lam, _ = system.solve_accelerations(y[0], y[1], t, args)
+        _, lam, _ = _solve_accelerations(system, y[0], y[1], t, args)
         return watched(lam)
 
     force_at_start = contact_force(t0, (q0, qd0), args)
@@ -1080,6 +1118,7 @@ def _simulate(
         max_steps=max_steps,
         adjoint=adjoint,
         progress_meter=progress_meter,
+        ends=(saveat.t0, saveat.t1) if saveat.ts is None else None,
     )
     phases = run.phases
     # Saved states between steps are interpolated: the stabilization may correct them
@@ -1097,7 +1136,7 @@ def _simulate(
         last state reached (one traced solve for all of them)."""
 
         def one(q_, qd_, t_):
-            _, lam, singular = sys_.solve_accelerations(q_, qd_, t_, args)
+            _, lam, singular = _solve_accelerations(sys_, q_, qd_, t_, args)
             if keep_rows is not None:
                 lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
             return lam, singular
@@ -1148,8 +1187,8 @@ def _simulate(
         reached = jnp.all(jnp.isfinite(q), axis=1)
         singular = singular_end | jnp.any(extra["singular"] & reached)
     else:
-        _, _, singular = end_system.solve_accelerations(
-            run.q_end, run.qd_end, run.t_end, args
+        _, _, singular = _solve_accelerations(
+            end_system, run.q_end, run.qd_end, run.t_end, args
         )
     result = RESULTS.where(
         singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result

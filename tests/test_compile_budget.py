@@ -1,0 +1,133 @@
+"""Structural facts of the compiled `simulate` program (no timings: those are in
+benchmarks/compile_time.py), and that the smaller program gives the same answers."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.extend as jex
+import jax.numpy as jnp
+import numpy as np
+
+import constrained_jax as cjax
+from constrained_jax.scenes import pendulum, two_cylinders as cyl2
+
+
+def _run(saveat, max_steps=4096, dt0=None):
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+
+    def run(q0, qd0, args):
+        return cjax.simulate(
+            pendulum.system(),
+            (0.0, 1.3),
+            q0,
+            qd0,
+            args,
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            saveat=saveat,
+            max_steps=max_steps,
+            dt0=dt0,
+            throw=False,
+        )
+
+    return run, (q0, qd0, args)
+
+
+def _num_while(jaxpr) -> int:
+    """`while` loops in a closed jaxpr, nested ones included."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == "while"
+        for sub in jex.core.jaxprs_in_params(eqn.params):
+            count += _num_while(sub)
+    return count
+
+
+def test_saving_only_the_ends_has_no_save_loop():
+    # `SaveAt(t0=True, t1=True)` uses diffrax's own end saves, not the loop that
+    # interpolates at save times: one `while` fewer than the same times as `ts`.
+    ends, inputs = _run(cjax.SaveAt(t0=True, t1=True))
+    grid, _ = _run(cjax.SaveAt(ts=jnp.asarray([0.0, 1.3])))
+    num_ends = _num_while(jax.make_jaxpr(ends)(*inputs).jaxpr)
+    num_grid = _num_while(jax.make_jaxpr(grid)(*inputs).jaxpr)
+    assert num_ends == num_grid - 1
+
+
+def test_saving_only_the_ends_matches_the_grid():
+    # A full run, one stopped at `max_steps`, and one stopped before its first
+    # accepted step (both ends `inf`, as diffrax leaves save times not reached).
+    for max_steps, dt0 in ((4096, None), (3, None), (1, 1.0)):
+        ends, inputs = _run(cjax.SaveAt(t0=True, t1=True), max_steps, dt0)
+        grid, _ = _run(cjax.SaveAt(ts=jnp.asarray([0.0, 1.3])), max_steps, dt0)
+        a, b = jax.jit(ends)(*inputs), jax.jit(grid)(*inputs)
+        assert a.result == b.result
+        assert (a.result == cjax.RESULTS.successful) == (max_steps > 3)
+        assert np.all(np.isinf(a.q[0])) == (dt0 is not None)
+        np.testing.assert_array_equal(a.ts, b.ts)
+        for x, y in [
+            (a.q, b.q),
+            (a.qd, b.qd),
+            (a.multipliers, b.multipliers),
+            (a.energy, b.energy),
+            (a.violation["position"], b.violation["position"]),
+        ]:
+            # The end not reached is `inf` in both.
+            np.testing.assert_array_equal(np.isinf(x), np.isinf(y))
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+        # Only the ends: `t1` alone too.
+        last, _ = _run(cjax.SaveAt(t1=True), max_steps, dt0)
+        c = jax.jit(last)(*inputs)
+        np.testing.assert_allclose(c.q, a.q[1:], rtol=1e-12, atol=1e-12)
+
+
+def _fresh(system):
+    """`system` with a new Lagrangian function object: nothing of it is cached yet."""
+
+    def lagrangian(q, qd, t, args):
+        return system.lagrangian(q, qd, t, args)
+
+    return eqx.tree_at(lambda s: s.lagrangian, system, lagrangian)
+
+
+def _count_equations(monkeypatch, fn, *inputs) -> int:
+    """How many times tracing `fn` traces the equations of motion of a system."""
+    calls = []
+    original = cjax.LagrangianSystem._equations
+
+    def counted(self, *args):
+        calls.append(None)
+        return original(self, *args)
+
+    monkeypatch.setattr(cjax.LagrangianSystem, "_equations", counted)
+    # (In JAX's default promotion mode: diffrax checks the vector field in the
+    # "standard" one, which would otherwise be a second trace under the tests'
+    # "strict" mode.)
+    with jax.numpy_dtype_promotion("standard"):
+        jax.make_jaxpr(fn)(*inputs)
+    return len(calls)
+
+
+def test_equations_traced_once_per_system(monkeypatch):
+    # Each trace of the equations adds a copy of the derivatives of the Lagrangian to
+    # the traced program: the vector field (diffrax's initial step, the stages), the
+    # release event, the watched multiplier, the saved multipliers and the singular
+    # check all reuse one trace per system (the attached and the free one).
+    args = cyl2.default_args()
+    q0, qd0 = cyl2.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    for system, num_systems in ((cyl2.system(), 1), (cyl2.contact_system(), 2)):
+        system = _fresh(system)
+
+        def run(q0, qd0, args, system=system):
+            return cjax.simulate(
+                system,
+                (0.0, 1.5),
+                q0,
+                qd0,
+                args,
+                stepsize_controller=controller,
+                saveat=cjax.SaveAt(ts=jnp.linspace(0.0, 1.5, 4)),
+                throw=False,
+            )
+
+        assert _count_equations(monkeypatch, run, q0, qd0, args) == num_systems
