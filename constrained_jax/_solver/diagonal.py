@@ -31,7 +31,7 @@ from .saddle_point import (
     ldl_factor_unrolled,
     ldl_solve_unrolled,
 )
-from .sparse import SparseMatrix
+from .sparse import matvec as _mul, SparseMatrix
 
 
 def is_diagonal(mass) -> bool:
@@ -146,17 +146,6 @@ def _batched(fn, axis_size, in_batched, args):
     """`jax.vmap(fn)` over the batched arguments only."""
     axes = tuple(0 if any(jax.tree.leaves(b)) else None for b in in_batched)
     return jax.vmap(fn, in_axes=axes, axis_size=axis_size)(*args)
-
-
-def _mul(matrix, v, transpose: bool = False):
-    """`matrix @ v` (`matrix.T @ v`) for a dense array or a `SparseMatrix`."""
-    if not isinstance(matrix, SparseMatrix):
-        return (matrix.T if transpose else matrix) @ v
-    rows, cols = np.asarray(matrix.rows, int), np.asarray(matrix.cols, int)
-    if transpose:
-        rows, cols = cols, rows
-    size = matrix.shape[1 if transpose else 0]
-    return jnp.zeros((size,), v.dtype).at[rows].add(matrix.values * v[cols])
 
 
 def diagonal_solve(mass, jac, rhs, bias, general):

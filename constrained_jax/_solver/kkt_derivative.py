@@ -36,7 +36,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .saddle_point import AbstractSaddlePointSolver
-from .sparse import SparseMatrix
+from .sparse import matvec as _matvec
 
 
 def solve(
@@ -78,18 +78,3 @@ def _solve_jvp(solver, primals, tangents):
     dx, dlam = (jnp.where(singular, 0.0, d) for d in (dx, dlam))
     d_singular = np.zeros(singular.shape, jax.dtypes.float0)
     return (x, lam, singular), (dx, dlam, d_singular)
-
-
-def _matvec(matrix, vector, transpose: bool = False) -> Array:
-    """`matrix @ vector` (`matrix.T @ vector` if `transpose`) for a dense array or a
-    `SparseMatrix` (on its nonzeros only)."""
-    if not isinstance(matrix, SparseMatrix):
-        return (matrix.T if transpose else matrix) @ vector
-    rows, cols = np.asarray(matrix.rows, int), np.asarray(matrix.cols, int)
-    size = matrix.shape[1] if transpose else matrix.shape[0]
-    if transpose:
-        rows, cols = cols, rows
-    out = jnp.zeros((size,), jnp.result_type(matrix.values, vector))
-    if rows.size == 0:
-        return out
-    return out.at[rows].add(matrix.values * vector[cols])

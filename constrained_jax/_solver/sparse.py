@@ -53,3 +53,18 @@ def as_dense(matrix) -> Float[Array, "m n"]:
     if isinstance(matrix, SparseMatrix):
         return matrix.todense()
     return matrix
+
+
+def matvec(matrix, vector, transpose: bool = False) -> Array:
+    """`matrix @ vector` (`matrix.T @ vector` if `transpose`) for a dense array or a
+    `SparseMatrix` (on its nonzeros only)."""
+    if not isinstance(matrix, SparseMatrix):
+        return (matrix.T if transpose else matrix) @ vector
+    rows, cols = np.asarray(matrix.rows, int), np.asarray(matrix.cols, int)
+    size = matrix.shape[1] if transpose else matrix.shape[0]
+    if transpose:
+        rows, cols = cols, rows
+    out = jnp.zeros((size,), jnp.result_type(matrix.values, vector))
+    if rows.size == 0:
+        return out
+    return out.at[rows].add(matrix.values * vector[cols])
