@@ -43,7 +43,7 @@ def _warn_float32_once() -> None:
         "relative accuracy, not 1e-10. Default tolerances follow the dtype "
         f"(`simulate`: step-size controller rtol = atol = {rtol:.1e}, "
         f"`consistency_tol` = {consistency:.1e}; Newton tolerances are raised to "
-        "10 eps); explicit tolerances below what float32 can reach are warned "
+        "100 eps); explicit tolerances below what float32 can reach are warned "
         "about and may not be met. For float64 call "
         "`jax.config.update('jax_enable_x64', True)` (or set JAX_ENABLE_X64=1) at "
         "startup, before creating any array.",

@@ -1183,19 +1183,27 @@ def _simulate(
         )
 
     result = run.result
+    # Only a finite state can tell that its KKT matrix is singular: at a state that
+    # overflowed (a fixed step that blew up) the solve is non-finite whatever the
+    # matrix, and the run has `diverged`.
+    end_finite = all_finite((run.q_end, run.qd_end))
     if saveat.multipliers:
         reached = jnp.all(jnp.isfinite(q), axis=1)
-        singular = singular_end | jnp.any(extra["singular"] & reached)
+        singular = (singular_end & end_finite) | jnp.any(extra["singular"] & reached)
     else:
         _, _, singular = _solve_accelerations(
             end_system, run.q_end, run.qd_end, run.t_end, args
         )
+        singular = singular & end_finite
+    # A run stopped by the divergence check (the state left the manifold: a step too
+    # large) keeps `diverged`, even where the runaway state's KKT matrix is singular.
     result = RESULTS.where(
-        singular & (result != RESULTS.successful), RESULTS.singular_dynamics, result
+        singular & (result != RESULTS.successful) & (result != RESULTS.diverged),
+        RESULTS.singular_dynamics,
+        result,
     )
     # Fixed steps are not checked by diffrax: a blow-up to inf/NaN must not pass as
     # success.
-    end_finite = all_finite((run.q_end, run.qd_end))
     result = RESULTS.where(
         (result == RESULTS.successful) & jnp.invert(end_finite),
         RESULTS.nonfinite,

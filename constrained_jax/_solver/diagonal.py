@@ -78,6 +78,24 @@ def needs_general(mass, jac, n: int):
     return functools.reduce(jnp.logical_or, flags)
 
 
+def free_gauges(mass, jac, n: int) -> list:
+    """For each coordinate, whether it is a free gauge: a column of `A` that is
+    structurally zero and a mass that vanishes (`|D_ii| <= 10 n eps max|D|`, or a
+    structural zero). Trace-time `True`/`False` where structure decides, else a
+    traced boolean."""
+    d = _diagonal(mass, n)
+    coupled = coupled_columns(jac, n)
+    present = [v for v in d if v is not None]
+    threshold = None
+    if present:
+        scale = _max_abs(present)
+        threshold = 10 * n * jnp.finfo(scale.dtype).eps * scale
+    return [
+        False if coupled[i] else (True if d[i] is None else jnp.abs(d[i]) <= threshold)
+        for i in range(n)
+    ]
+
+
 def diagonal_range_space(mass, jac, rhs, bias):
     """The fast path, assuming `needs_general` is false: `(x, lambda, singular)`.
 
@@ -89,13 +107,9 @@ def diagonal_range_space(mass, jac, rhs, bias):
     d = _diagonal(mass, n)
     a = _entries(jac, (k, n))
     coupled = coupled_columns(jac, n)
+    gauges = free_gauges(mass, jac, n)
     f = [rhs[i] for i in range(n)]
     zero = jnp.zeros_like(rhs[0])
-    present = [v for v in d if v is not None]
-    threshold = None
-    if present:
-        scale = _max_abs(present)
-        threshold = 10 * n * jnp.finfo(scale.dtype).eps * scale
     tol = 100 * n * jnp.finfo(rhs.dtype).eps * _max_abs(f)
     inv: list = []
     inconsistent = jnp.array(False)
@@ -105,7 +119,7 @@ def diagonal_range_space(mass, jac, rhs, bias):
             continue
         # A free coordinate: its reciprocal is 0 when its mass vanishes (a free
         # gauge), which is consistent only without a force on it.
-        small = jnp.array(True) if d[i] is None else jnp.abs(d[i]) <= threshold
+        small = jnp.asarray(gauges[i])
         if d[i] is not None:
             inv.append(jnp.where(small, zero, 1 / jnp.where(small, 1, d[i])))
         else:
@@ -154,7 +168,11 @@ def diagonal_solve(mass, jac, rhs, bias, general):
     call (per batch under `jax.vmap`).
 
     Differentiable in forward and reverse mode: the tangents solve the same system
-    (`lax.custom_linear_solve`, so that they transpose).
+    (`lax.custom_linear_solve`, so that they transpose). On a free gauge coordinate
+    (see `free_gauges`) the solve sets the unknown to 0 and ignores its right-hand
+    side; the tangent solves do the same (their right-hand side is projected before
+    the solve, so that a cotangent on the gauge is not taken for a force on a
+    massless coordinate), which makes the map `P S P` and its transpose `P S^T P`.
     """
     n = rhs.shape[0]
 
@@ -208,13 +226,21 @@ def diagonal_solve(mass, jac, rhs, bias, general):
                 ]
             )
 
+        gauges = free_gauges(mass, jac, n)
+        if any(g is not False for g in gauges):
+            project = lambda r: jnp.where(
+                jnp.stack([jnp.asarray(g) for g in gauges]), 0.0, r
+            )
+        else:
+            project = lambda r: r
+
         def kkt_solve(_, r):
-            dx, dlam, _ = solve(mass, jac, r[:n], -r[n:])
+            dx, dlam, _ = solve(mass, jac, project(r[:n]), -r[n:])
             return jnp.concatenate([dx, dlam])
 
         def kkt_transpose_solve(_, r):
             # K^T = [[M, A^T], [-A, 0]]: K^T w = r is K (w1, -w2) = (r1, -r2).
-            w1, w2, _ = solve(mass, jac, r[:n], r[n:])
+            w1, w2, _ = solve(mass, jac, project(r[:n]), r[n:])
             return jnp.concatenate([w1, -w2])
 
         dz = lax.custom_linear_solve(
