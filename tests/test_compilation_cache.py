@@ -9,6 +9,7 @@ import sys
 
 import jax
 import pytest
+from jax.experimental.compilation_cache import compilation_cache
 
 import constrained_jax as cjax
 
@@ -25,6 +26,9 @@ def restore_cache_config():
     yield
     for name, value in saved.items():
         jax.config.update(name, value)
+    # JAX decides once per process whether (and where) the cache is used: back to
+    # undecided, so that the rest of the worker compiles without it.
+    compilation_cache.reset_cache()
 
 
 def test_default_folder_follows_xdg(tmp_path, monkeypatch, restore_cache_config):
