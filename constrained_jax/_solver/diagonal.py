@@ -58,16 +58,24 @@ def coupled_columns(jac, n: int) -> np.ndarray:
     return np.full((n,), jac.shape[0] > 0)
 
 
+def _zero_mass_threshold(d: list, n: int):
+    """`10 n eps max|D|`: a diagonal mass at or below it counts as zero (`None` when
+    every entry is a structural zero)."""
+    present = [v for v in d if v is not None]
+    if not present:
+        return None
+    scale = _max_abs(present)
+    return 10 * n * jnp.finfo(scale.dtype).eps * scale
+
+
 def needs_general(mass, jac, n: int):
     """Whether the fast path cannot solve this system: a mass coupled by `A` that is
     not positive beyond round-off (`D_ii <= 10 n eps max|D|`)."""
     d = _diagonal(mass, n)
     coupled = coupled_columns(jac, n)
-    present = [v for v in d if v is not None]
-    if not present:
+    threshold = _zero_mass_threshold(d, n)
+    if threshold is None:
         return jnp.asarray(bool(np.any(coupled)))
-    scale = functools.reduce(jnp.maximum, [jnp.abs(v) for v in present])
-    threshold = 10 * n * jnp.finfo(scale.dtype).eps * scale
     flags = [
         jnp.asarray(True) if d[i] is None else d[i] <= threshold
         for i in range(n)
@@ -85,11 +93,7 @@ def free_gauges(mass, jac, n: int) -> list:
     traced boolean."""
     d = _diagonal(mass, n)
     coupled = coupled_columns(jac, n)
-    present = [v for v in d if v is not None]
-    threshold = None
-    if present:
-        scale = _max_abs(present)
-        threshold = 10 * n * jnp.finfo(scale.dtype).eps * scale
+    threshold = _zero_mass_threshold(d, n)
     return [
         False if coupled[i] else (True if d[i] is None else jnp.abs(d[i]) <= threshold)
         for i in range(n)
