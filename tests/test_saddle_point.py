@@ -60,6 +60,33 @@ def test_badly_scaled_units():
     np.testing.assert_allclose(lam, lam_ref, rtol=1e-9)
 
 
+@pytest.mark.parametrize(
+    "solver",
+    [*SOLVERS, cjax.Automatic()],
+    ids=["range-space", "full-lu", "lapack", "automatic"],
+)
+@pytest.mark.parametrize("mass", [1e-300, 1e-30, 1e30, 1e300])
+def test_extreme_masses_keep_the_mass_independent_answer(solver, mass):
+    """The Cartesian pendulum under gravity: its accelerations do not depend on the
+    mass `m` and its multiplier is proportional to it, down to `m = 1e-300` next to
+    a Jacobian of order 1 (FullKKTLU once took such a mass for zero and returned the
+    massless answer as a success) and up to `1e300`."""
+    from constrained_jax.scenes import pendulum
+
+    base = pendulum.system()
+    system = cjax.LagrangianSystem(
+        base.lagrangian, base.constraints, base.forces, saddle_point_solver=solver
+    )
+    args = pendulum.default_args()
+    q, qd = pendulum.state(0.7, 0.3, args)
+    solve = jax.jit(system.solve_accelerations)
+    qdd_ref, lam_ref, _ = solve(q, qd, 0.0, dict(args, m=jnp.asarray(1.0)))
+    qdd, lam, singular = solve(q, qd, 0.0, dict(args, m=jnp.asarray(mass)))
+    assert not singular
+    np.testing.assert_allclose(qdd, qdd_ref, rtol=1e-12)
+    np.testing.assert_allclose(lam / mass, lam_ref, rtol=1e-12)
+
+
 @pytest.mark.parametrize("solver", SOLVERS[:2], ids=["range-space", "full-lu"])
 def test_singular_systems_are_flagged(solver):
     rng = np.random.default_rng(1)

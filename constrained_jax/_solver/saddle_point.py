@@ -84,7 +84,11 @@ class FullKKTLU(AbstractSaddlePointSolver):
     becomes batched `dot`s and gathers that XLA on CPU does not fuse: for small
     systems it costs several times [`constrained_jax.RangeSpaceLDL`][].
 
-    A pivot below `10 m eps` of the largest entry counts as zero. Zero pivots in the
+    The rows of `M` (and so the unknowns `lambda`) are first scaled by
+    `max|A| / max|M|`, so that the two blocks have the same size whatever the units
+    (a mass of `1e-300` next to an `A` of order 1 is not mistaken for zero; `lambda`
+    is scaled back). A pivot below `10 m eps` of the largest entry counts as zero.
+    Zero pivots in the
     columns of `x` are free gauge directions (see
     [`constrained_jax.AbstractSaddlePointSolver`][]): their unknowns are set to zero
     and the solution is accepted only if it satisfies the whole system to round-off
@@ -104,10 +108,17 @@ class FullKKTLU(AbstractSaddlePointSolver):
         n, k = mass.shape[0], jac.shape[0]
         if k == 0:
             matrix, vector = mass, rhs
+            block_scale = None
         else:
+            # (M x - A^T lambda) / s = f / s with s = max|M| / max|A|: the unknowns
+            # are x and lambda / s.
+            size_m, size_a = jnp.max(jnp.abs(mass)), jnp.max(jnp.abs(jac))
+            ratio = size_m / size_a
+            usable = (size_m > 0) & (size_a > 0) & (ratio > 0) & jnp.isfinite(ratio)
+            block_scale = jnp.where(usable, ratio, 1.0)
             zeros = jnp.zeros((k, k), mass.dtype)
-            matrix = jnp.block([[mass, -jac.T], [jac, zeros]])
-            vector = jnp.concatenate([rhs, -bias])
+            matrix = jnp.block([[mass / block_scale, -jac.T], [jac, zeros]])
+            vector = jnp.concatenate([rhs / block_scale, -bias])
         m = n + k
         lu, perm, _ = dense_factor(matrix, self.unroll_max)
         eps = jnp.finfo(matrix.dtype).eps
@@ -122,7 +133,8 @@ class FullKKTLU(AbstractSaddlePointSolver):
         singular = jnp.any(zero[n:]) | (jnp.any(zero) & jnp.invert(consistent))
         singular = singular | jnp.invert(jnp.all(jnp.isfinite(sol)))
         sol = jnp.where(singular, 0.0, sol)
-        return sol[:n], sol[n:], singular
+        lam = sol[n:] if block_scale is None else sol[n:] * block_scale
+        return sol[:n], lam, singular
 
 
 def _max_abs(values: list) -> Array:
