@@ -134,12 +134,12 @@ class Newton(AbstractKKTSolver):
 
     Converged when the full Newton step is within tolerance, `|dz| < 1` in that
     scaled norm; the step is then taken (so the error is of the order of the square
-    of the tolerance). Tolerances below `100 eps` of the dtype are raised to it: the
-    Newton step computed from a residual at round-off is about `cond(K) eps` of the
-    unknowns, and the KKT matrices of spectral discretizations have condition numbers
-    of 10 to 100 at moderate sizes, so a tighter test stalls at the round-off floor
-    (float32: `100 eps = 1.2e-5`, the accuracy float32 can promise; float64:
-    `2.2e-14`, far below the default `1e-10`).
+    of the tolerance). Tolerances below `100 eps` of the dtype are raised to it: a
+    Newton step computed from a residual at round-off is the round-off amplified by
+    the conditioning of `K`, and a tighter test can stall there (the float32 sphere
+    geodesic, `Chebyshev(24)`, stalled with steps of about `120 eps` of the unknowns
+    under a `10 eps` floor). Float32: `100 eps = 1.2e-5`, the accuracy float32 can
+    promise; float64: `2.2e-14`, far below the default `1e-10`.
 
     The default `linear_solver` is [`constrained_jax.DenseLU`][], which forms `K`.
     For large problems use a matrix-free one,

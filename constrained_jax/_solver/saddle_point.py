@@ -88,8 +88,7 @@ class FullKKTLU(AbstractSaddlePointSolver):
     `max|A| / max|M|`, so that the two blocks have the same size whatever the units
     (a mass of `1e-300` next to an `A` of order 1 is not mistaken for zero; `lambda`
     is scaled back). A pivot below `10 m eps` of the largest entry counts as zero.
-    Zero pivots in the
-    columns of `x` are free gauge directions (see
+    Zero pivots in the columns of `x` are free gauge directions (see
     [`constrained_jax.AbstractSaddlePointSolver`][]): their unknowns are set to zero
     and the solution is accepted only if it satisfies the whole system to round-off
     (`|K z - r| <= 100 m eps (|K| |z|_1 + |r|)`), i.e. if no force acts along them.
