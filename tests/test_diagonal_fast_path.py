@@ -182,20 +182,21 @@ def test_derivatives(zero_mass):
         theta = theta.at[2].set(0.0)
     loss, loss_lu = _loss(AUTO, pattern), _loss(cjax.FullKKTLU(), pattern)
     grad = jax.jit(jax.grad(loss))(theta)
-    np.testing.assert_allclose(grad, jax.grad(loss_lu)(theta), rtol=1e-9, atol=1e-10)
+    grad_lu = jax.jit(jax.grad(loss_lu))
+    np.testing.assert_allclose(grad, grad_lu(theta), rtol=1e-9, atol=1e-10)
     free = np.ones(14, bool)
     free[2] = not zero_mass  # finite differences would step into negative mass
-    fd = finite_difference_grad(loss, theta)
+    fd = finite_difference_grad(jax.jit(loss), theta)
     np.testing.assert_allclose(grad[free], fd[free], rtol=1e-6, atol=1e-7)
     tangent = jnp.asarray(rng.normal(size=14))
-    _, dout = jax.jvp(loss, (theta,), (tangent,))
+    _, dout = jax.jit(lambda t, v: jax.jvp(loss, (t,), (v,)))(theta, tangent)
     np.testing.assert_allclose(dout, grad @ tangent, rtol=1e-10)
     thetas = jnp.stack([theta, theta.at[0].set(1.5)])
     grads = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
     np.testing.assert_allclose(
-        grads, jax.vmap(jax.grad(loss_lu))(thetas), rtol=1e-9, atol=1e-10
+        grads, jnp.stack([grad_lu(t) for t in thetas]), rtol=1e-9, atol=1e-10
     )
-    hessian = jax.jacfwd(jax.grad(loss))(theta)
+    hessian = jax.jit(jax.jacfwd(jax.grad(loss)))(theta)
     np.testing.assert_allclose(
-        hessian, jax.hessian(loss_lu)(theta), rtol=1e-7, atol=1e-8
+        hessian, jax.jit(jax.hessian(loss_lu))(theta), rtol=1e-7, atol=1e-8
     )

@@ -92,17 +92,18 @@ def test_first_derivatives_match_plain(solver, name, inertia):
     system = _systems(solver)[name]
     custom, plain = _custom(system), _plain(system)
     p = _point(inertia)
-    _close(jax.jit(custom)(p), plain(p), 1e-13)
-    ref = jax.jacfwd(plain)(p)
+    _close(jax.jit(custom)(p), jax.jit(plain)(p), 1e-13)
+    plain_jacobian = jax.jit(jax.jacfwd(plain))  # one program for every point
+    ref = plain_jacobian(p)
     _close(jax.jit(jax.jacfwd(custom))(p), ref)
     _close(jax.jit(jax.jacrev(custom))(p), ref)
     v = jnp.linspace(-1.0, 1.0, p.shape[0])
-    _close(jax.jvp(custom, (p,), (v,))[1], ref @ v)
+    _close(jax.jit(lambda p, v: jax.jvp(custom, (p,), (v,))[1])(p, v), ref @ v)
     weights = jnp.arange(1.0, ref.shape[0] + 1)
     scalar = lambda p: weights @ custom(p)
     _close(jax.jit(jax.grad(scalar))(p), weights @ ref)
     batch = jnp.stack([p, p.at[6].add(0.1), p.at[7].add(-0.2)])
-    refs = jnp.stack([weights @ jax.jacfwd(plain)(b) for b in batch])
+    refs = jnp.stack([weights @ plain_jacobian(b) for b in batch])
     _close(jax.jit(jax.vmap(jax.grad(scalar)))(batch), refs)
     if name == "free" and inertia == 0.0:
         assert np.all(np.asarray(ref[2]) == 0.0)  # the gauge's acceleration
@@ -130,10 +131,12 @@ def test_singular_zero_tangents(solver):
     q, qd, args = _split(p)
     assert bool(system.solve_accelerations(q, qd, 0.0, args)[2])
     custom = _custom(system)
-    for jac in (jax.jacfwd(custom)(p), jax.jacrev(custom)(p)):
+    jacrev = jax.jit(jax.jacrev(custom))
+    for jac in (jax.jit(jax.jacfwd(custom))(p), jacrev(p)):
         np.testing.assert_array_equal(np.asarray(jac), 0.0)
     # Nonsingular with inertia: the force is then ordinary.
-    _close(jax.jacrev(custom)(_point(0.09)), jax.jacfwd(_plain(system))(_point(0.09)))
+    plain = jax.jit(jax.jacfwd(_plain(system)))
+    _close(jacrev(_point(0.09)), plain(_point(0.09)))
 
 
 @pytest.mark.parametrize("name, inertia", [("attached", 0.09), ("free", 0.0)])
@@ -143,7 +146,7 @@ def test_second_derivatives_match_plain(name, inertia):
     custom = lambda p: weights @ _custom(system)(p)
     plain = lambda p: weights @ _plain(system)(p)
     p = _point(inertia)
-    ref = jax.hessian(plain)(p)
+    ref = jax.jit(jax.hessian(plain))(p)
     _close(jax.jit(jax.hessian(custom))(p), ref, 1e-9)
     _close(jax.jit(jax.jacfwd(jax.jacfwd(custom)))(p), ref, 1e-9)
 
@@ -185,12 +188,16 @@ def test_default_adjoint_matches_recursive_checkpoint(extra):
     from constrained_jax._adjoint import ForwardJacobianAdjoint
 
     p = _inputs(extra)
-    ref = jax.jit(jax.jacrev(_final_state(diffrax.RecursiveCheckpointAdjoint())))(p)
+    reference = jax.jit(jax.jacrev(_final_state(diffrax.RecursiveCheckpointAdjoint())))
+    ref = reference(p)
     _close(jax.jit(jax.jacrev(_final_state(None)))(p), ref, 1e-12)
-    forced = ForwardJacobianAdjoint(max_tangents=0)  # always the fallback
-    _close(jax.jit(jax.jacrev(_final_state(forced)))(p), ref, 1e-12)
+    if extra == 0:
+        # Above `max_tangents` the default already is the fallback.
+        forced = ForwardJacobianAdjoint(max_tangents=0)
+        _close(jax.jit(jax.jacrev(_final_state(forced)))(p), ref, 1e-12)
     batch = jnp.stack([p, p.at[1].add(0.1)])
-    theta1 = lambda adjoint: lambda p: _final_state(adjoint)(p)[1]
-    grads = jax.jit(jax.vmap(jax.grad(theta1(None))))(batch)
-    refs = jax.jit(jax.vmap(jax.grad(theta1(diffrax.RecursiveCheckpointAdjoint()))))
-    _close(grads, refs(batch), 1e-12)
+    theta1 = lambda p: _final_state(None)(p)[1]
+    grads = jax.jit(jax.vmap(jax.grad(theta1)))(batch)
+    # The reference Jacobian's theta1 row at each member (one compiled program).
+    refs = jnp.stack([ref[1], reference(batch[1])[1]])
+    _close(grads, refs, 1e-12)

@@ -21,27 +21,34 @@ THETA0S = [1e-3, 0.3, 1.0]
 
 
 @jax.jit
-def _roll_off(alpha, theta0):
-    args = cyl.default_args(alpha=alpha)
-    q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), args)
-    t_star = cyl.detachment_time(theta0, args)
+def _contact_run(args, q0, qd0, t1, ts):
+    """The two cylinders in contact from `(q0, qd0)` to `t1`, saved at the 4 times
+    `ts`: one compiled program for every test of the attached-then-free run."""
     return cjax.simulate(
         cyl.contact_system(),
-        (0.0, 5.0),
+        (0.0, t1),
         q0,
         qd0,
         args,
         stepsize_controller=TIGHT,
-        saveat=cjax.SaveAt(ts=jnp.array([0.25, 0.5, 0.9, 1.2]) * t_star),
+        saveat=cjax.SaveAt(ts=ts),
         throw=False,
     )
+
+
+def _roll_off(alpha, theta0):
+    args = cyl.default_args(alpha=alpha)
+    q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), args)
+    t_star = cyl.detachment_time(theta0, args)
+    ts = jnp.array([0.25, 0.5, 0.9, 1.2]) * t_star
+    return _contact_run(args, q0, qd0, jnp.asarray(5.0), ts)
 
 
 @pytest.fixture(scope="module")
 def roll_offs():
     alpha, theta0 = np.meshgrid(ALPHAS, THETA0S, indexing="ij")
     alpha, theta0 = jnp.asarray(alpha.ravel()), jnp.asarray(theta0.ravel())
-    return alpha, theta0, jax.vmap(_roll_off)(alpha, theta0)
+    return alpha, theta0, jax.jit(jax.vmap(_roll_off))(alpha, theta0)
 
 
 def test_detachment_angle_and_time(roll_offs):
@@ -137,9 +144,10 @@ def test_balanced_on_top_never_releases():
     """theta0 = 0 exactly: an equilibrium; it stays on top and is never released."""
     args = cyl.default_args()
     q0, qd0 = cyl.state(jnp.asarray(0.0), jnp.asarray(0.0), args)
-    traj = cjax.simulate(
-        cyl.contact_system(), (0.0, 3.0), q0, qd0, args, saveat=cjax.SaveAt(t1=True)
+    traj = _contact_run(
+        args, q0, qd0, jnp.asarray(3.0), jnp.array([0.0, 1.0, 2.0, 3.0])
     )
+    assert traj.result == cjax.RESULTS.successful
     assert not traj.release.released
     assert traj.release.time == 3.0
     # theta1 and theta2 stay exactly put; r to round-off (XLA's fused arithmetic in
@@ -158,16 +166,9 @@ def test_start_past_detachment_releases_at_once():
     q0, qd0 = cyl.state(theta, thetadot, args)
     assert cyl.normal_force(theta, theta, args) > 0  # from rest it would hold...
     assert args["g"] * jnp.cos(theta) < (args["R"] + args["a"]) * thetadot**2
-    ts = jnp.array([0.0, 0.2, 0.4])
-    traj = cjax.simulate(
-        cyl.contact_system(),
-        (0.0, 0.4),
-        q0,
-        qd0,
-        args,
-        stepsize_controller=TIGHT,
-        saveat=cjax.SaveAt(ts=ts),
-    )
+    ts = jnp.array([0.0, 0.1, 0.2, 0.4])
+    traj = _contact_run(args, q0, qd0, jnp.asarray(0.4), ts)
+    assert traj.result == cjax.RESULTS.successful
     rel = traj.release
     assert rel.released and rel.at_start and rel.time == 0.0
     np.testing.assert_array_equal(rel.q, q0)
