@@ -10,13 +10,12 @@ in `constrained_jax._inequalities`.
 import warnings
 from typing import Any, Literal
 
-import numpy as np
-
 import equinox as eqx
 import jax
 import jax.flatten_util as jfu
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
@@ -400,7 +399,7 @@ def _check_concrete_bounds(lower, upper) -> None:
         return
     if len(lo_leaves) != len(up_leaves):
         return  # The shape check inside says what is wrong.
-    for lo, up in zip(lo_leaves, up_leaves):
+    for lo, up in zip(lo_leaves, up_leaves, strict=True):
         try:
             crossed = np.any(np.asarray(lo) > np.asarray(up))
         except ValueError:
@@ -619,7 +618,7 @@ def _flat_bound(bound, x0, name: str, dtype):
     x_leaves, x_def = jtu.tree_flatten(x0)
     b_leaves, b_def = jtu.tree_flatten(bound)
     if b_def == x_def:
-        pairs = list(zip(b_leaves, x_leaves))
+        pairs = list(zip(b_leaves, x_leaves, strict=True))
     elif len(b_leaves) == 1 and (len(x_leaves) == 1 or jnp.ndim(b_leaves[0]) == 0):
         pairs = [(b_leaves[0], leaf) for leaf in x_leaves]
     else:
@@ -837,6 +836,9 @@ def _extremize_inequalities(
     kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
     z = nan_tangent_where(z, failed)
     x, lam, mu = z[:n], z[n : n + k], z[n + k :]
+    # Inactive: mu_i = 0 exactly (the iteration leaves round-off there; its
+    # derivative is zero by `_rewrite` anyway).
+    mu = jnp.where(active, mu, 0.0)
     value = objective_flat(x, args)
     residual = problem.residual(zs, aug)
     stats = {
