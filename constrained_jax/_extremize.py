@@ -128,8 +128,9 @@ class Extremum(eqx.Module):
         `sense="maximize"`. The rows are the user's `H`, then one per entry of
         `lower` (`H = lower - x`), then one per entry of `upper` (`H = x - upper`).
         Shape `(0,)` without inequalities.
-    - `active`: boolean, shape `(m,)`: where `H_i = 0` (to the tolerance of the KKT
-        check, see `extremize`). Shape `(0,)` without inequalities.
+    - `active`: boolean, shape `(m,)`: where `H_i = 0` at the solution (the
+        binding inequalities; see `extremize` for the tolerance). Shape `(0,)`
+        without inequalities.
     - `kind`: an [`constrained_jax.EXTREMUM`][] member; `EXTREMUM.unknown` whenever
         `result` is not successful (the point where a failed solve stopped is not a
         stationary point, so it is neither a minimum nor a maximum).
@@ -311,6 +312,17 @@ def extremize(
         into arrays, so changing them never recompiles; anything that must stay static
         belongs in the closure of `F`.
     - `constraints`: `G(x, args) -> (k,)` (a scalar means one constraint), or `None`.
+    - `inequalities`: `H(x, args) -> (m,)` (a scalar means one inequality), the
+        constraints `H_i(x) <= 0`, or `None`.
+    - `lower`, `upper`: bounds `lower <= x <= upper`, or `None`: a scalar (for every
+        entry of `x`), an array that broadcasts to `x0`, or a pytree with the
+        structure of `x0` whose leaves broadcast to its leaves. An infinite entry
+        (`-inf` in `lower`, `inf` in `upper`) means no bound. They are folded into
+        `H` (see `inequality_multipliers` below) and are differentiable like `args`.
+    - `sense`: `"minimize"` or `"maximize"`; required with inequalities or bounds
+        (it fixes the sign of `mu`, see below). Without them it is optional: the
+        equality-constrained solve is unchanged, and a successful point whose `kind`
+        contradicts `sense` is reported as `RESULTS.not_an_optimum`.
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][], or `None` (default):
         `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the size
         `n + k` of the KKT system: [`constrained_jax.DenseLU`][] up to 256 unknowns,
@@ -339,6 +351,61 @@ def extremize(
 
         Which stationary point is found depends on `x0`: Newton's method on the KKT
         system converges to nearby minima, maxima and saddles alike. Check `kind`.
+
+    **Inequalities.** With `inequalities`, `lower` or `upper` the KKT conditions are
+
+        grad F + sum_j lambda_j grad G_j + sum_i mu_i grad H_i = 0,    G = 0,
+        H <= 0,    s mu >= 0,    mu_i H_i = 0,
+
+    with `s = +1` for `sense="minimize"` and `s = -1` for `"maximize"`: the *same*
+    stationarity formula in both senses, so `mu >= 0` when minimizing and `mu <= 0`
+    when maximizing. The envelope theorem then reads `dF*/dp = dF/dp + lambda .
+    dG/dp + mu . dH/dp` in both senses; for an upper bound `H = x - b`,
+    `dF*/db = -mu`, for a lower bound `H = b - x`, `dF*/db = +mu`.
+
+    The rows of `H` (and of `sol.inequality_multipliers`, `sol.active`) are the
+    user's `H` (`m_H` rows), then `n` rows `lower - x` if `lower` is given, then
+    `n` rows `x - upper` if `upper` is given (`n` the size of the flattened `x`, in
+    the order of `jax.flatten_util.ravel_pytree(x0)`). An infinite bound keeps its
+    row, with `H = -1` (never active) and `mu = 0`, so that the shapes do not depend
+    on the values (bounds may be traced, batched and differentiated).
+
+    The complementarity conditions are written with the Fischer-Burmeister function
+    `phi(s mu_i, -H_i) = 0`, `phi(a, b) = a + b - sqrt(a^2 + b^2)`, and the square
+    system in `(x, lambda, mu)` is solved by a semismooth Newton method (a dense
+    Jacobian by forward-mode autodiff) with an Armijo line search on `|r|^2 / 2`
+    and a Levenberg-Marquardt step where the Newton step fails, from any start,
+    feasible or not. `solver` must be `None` or a [`constrained_jax.Newton`][]:
+    its `rtol`, `atol` give the stopping test (as for equalities), its
+    `linear_solver` the backward pass. After the iteration the KKT conditions are
+    checked, relative to `max(1, |mu|)` for `mu`, `max(1, |x|) |grad H_i|` for
+    `H_i`, `max(1, |grad F|)` for stationarity and `max(1, |x|)` for `G`, to
+    `tol = sqrt(max(rtol, atol, 100 eps))` (`sol.stats["kkt_tolerance"]`,
+    `1e-5` by default; the violation found is `sol.stats["kkt_violation"]`): a
+    point that fails them is never successful (`RESULTS.infeasible_inequalities`
+    where some `H_i > 0`, `RESULTS.kkt_conditions_violated` otherwise).
+    `sol.active` marks the inequalities whose `H_i` is the zero of the
+    complementary pair (`|H_i|` within `max(rtol, atol)` relative, or smaller than
+    `|mu_i|` in those units); `mu` is exactly zero on the others.
+
+    `kind` is judged on the tangent space of `G` and of the *strictly* active
+    inequalities (active with `|mu_i|` above `max(rtol, atol)` relative). Weakly
+    active ones (`H_i = 0`, `mu_i = 0`) make that space larger than the critical
+    cone, so an indefinite answer is then reported as `EXTREMUM.degenerate`
+    (inconclusive). When the active constraints leave no tangent space, `kind` is
+    `EXTREMUM.isolated` (a vertex: first-order conditions with the sign of `mu`
+    suffice). A successful point whose `kind` contradicts `sense` (a maximum or a
+    saddle when minimizing, a minimum or a saddle when maximizing) is
+    `RESULTS.not_an_optimum`. Newton finds a nearby KKT point, not the best one:
+    from inside the box, minimizing `-x^2` on `[-1, 1]` finds the KKT point `x = 0`
+    (reported `not_an_optimum`), from outside it `x = 1`.
+
+    Derivatives with respect to `args`, `lower`, `upper` (and arrays `F`, `G`, `H`
+    close over) come from the implicit function theorem on the KKT system with the
+    strictly active inequalities as equalities and the others held at `mu_i = 0`:
+    exact where strict complementarity holds. At a weakly active inequality the
+    derivative is one-sided: that of the problem without it (correct for
+    perturbations that make it inactive, wrong for those that make it bind).
     """
     args = as_traced_args(args)
     x0 = jtu.tree_map(inexact_asarray, x0)

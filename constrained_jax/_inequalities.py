@@ -252,16 +252,26 @@ def _scales(problem, z, args):
 
 
 def _active_sets(problem, z, args, tol):
-    """`(active, strict, violation)` at `z`: `active` where `H_i >= -tol` (in the
-    units of `_scales`), `strict` where also `s mu_i > tol`, and the largest
-    violation of the KKT conditions, relative to those units."""
+    """`(active, strict, violation, infeasible, jac_h)` at `z`, in the units of
+    `_scales` (`a = s mu_i`, `b = -H_i`, each relative):
+
+    - `active` where `H_i` is the zero of the complementary pair: `b <= max(a,
+        tol^2)` (`tol^2` is the solver's own tolerance, `max(rtol, atol, 100 eps)`);
+    - `strict` where also `a > tol^2`: active with a nonzero multiplier.
+        `active & ~strict` are the weakly active (degenerate) inequalities;
+    - `violation`: the largest violation of the KKT conditions (stationarity,
+        `G = 0`, and `|min(a, b)|`, which covers feasibility, the sign of `mu` and
+        complementarity);
+    - `infeasible`: the largest `H_i > 0`.
+    """
     _, _, mu = problem.split(z)
     mu_scale, h_scale, stat_scale, jac_h = _scales(problem, z, args)
     grad_star, g, h = problem.stationarity(z, args)
     a = problem.sign * mu / mu_scale
     b = -h / h_scale
-    active = b <= tol
-    strict = active & (a > tol)
+    fine = tol * tol
+    active = b <= jnp.maximum(a, fine)
+    strict = active & (a > fine)
     complementarity = jnp.max(jnp.abs(jnp.minimum(a, b)), initial=0.0)
     stationarity = jnp.max(jnp.abs(grad_star)) / stat_scale
     x_scale = jnp.maximum(1.0, jnp.max(jnp.abs(problem.split(z)[0])))
