@@ -285,43 +285,56 @@ def test_capped_cylinder_closed_form(h_max):
     assert sol.kind == (cjax.EXTREMUM.isolated if capped else cjax.EXTREMUM.maximum)
 
 
+def _value_and_x(l, h_max):
+    sol = _capped_cylinder(jnp.asarray(B), l, h_max)
+    return sol.value, sol.x
+
+
+# Forward mode with respect to (l, h_max): one compilation for every point.
+_VALUE_AND_X_JAC = jax.jit(jax.jacfwd(_value_and_x, argnums=(0, 1)))
+
+
 def test_envelope_theorem_and_implicit_derivatives():
     """`dV*/dh_max = -mu` for `H = h - h_max` (in both senses), by `jax.grad`, by
     finite differences, and in closed form; `da/dh_max = -h_max / (pi b)` through the
     active cap (the implicit function theorem on the reduced system)."""
     b, l, h_max = jnp.asarray(B), jnp.asarray(L), jnp.asarray(0.7)
     value = lambda hm: _capped_cylinder(b, l, hm).value
-    grad = jax.grad(value)(h_max)
+    grad = jax.grad(value)(h_max)  # reverse mode
     mu = _capped_cylinder(b, l, h_max).inequality_multipliers[1]
     np.testing.assert_allclose(grad, -mu, rtol=1e-10)
     step = 1e-6
     fd = (value(h_max + step) - value(h_max - step)) / (2 * step)
     np.testing.assert_allclose(grad, fd, rtol=1e-7)
     hm = 0.7
-    closed = (
-        np.pi
-        * ((L - hm**2 / B) / (2 * np.pi))
-        * ((L - hm**2 / B) / (2 * np.pi) - 2 * hm**2 / (np.pi * B))
-    )
+    a = (L - hm**2 / B) / (2 * np.pi)
+    closed = np.pi * a * (a - 2 * hm**2 / (np.pi * B))  # d(pi a^2 h)/dh along G
     np.testing.assert_allclose(grad, closed, rtol=1e-10)
 
-    dx = jax.jacfwd(lambda hm: _capped_cylinder(b, l, hm).x)(h_max)
-    np.testing.assert_allclose(dx, [-0.7 / (np.pi * B), 1.0], rtol=1e-10)
-    # With the cap inactive, x does not depend on it, and d/dl is the lecture's.
-    dx_free = jax.jacrev(lambda hm: _capped_cylinder(b, l, hm).x)(jnp.asarray(1.5))
-    np.testing.assert_allclose(dx_free, [0.0, 0.0], atol=1e-12)
-    dh_dl = jax.grad(lambda l_: _capped_cylinder(b, l_, jnp.asarray(1.5)).x[1])(l)
-    np.testing.assert_allclose(dh_dl, 0.5 * np.sqrt(B / (5 * L)), rtol=1e-10)
+    (dv_dl, dv_dh), (dx_dl, dx_dh) = _VALUE_AND_X_JAC(l, h_max)
+    np.testing.assert_allclose(dv_dh, -mu, rtol=1e-10)
+    np.testing.assert_allclose(dx_dh, [-0.7 / (np.pi * B), 1.0], rtol=1e-10)
+    # Capped, h = h_max whatever l: da/dl = 1 / (2 pi), and dV/dl = -lambda = a h.
+    np.testing.assert_allclose(dx_dl, [1 / (2 * np.pi), 0.0], atol=1e-12)
+    np.testing.assert_allclose(dv_dl, a * hm, rtol=1e-10)
+    # With the cap inactive, nothing depends on it, and d/dl is the lecture's.
+    (dv_dl, dv_dh), (dx_dl, dx_dh) = _VALUE_AND_X_JAC(l, jnp.asarray(1.5))
+    np.testing.assert_allclose(dx_dh, [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(dv_dh, 0.0, atol=1e-12)
+    np.testing.assert_allclose(
+        dx_dl, [2 / (5 * np.pi), 0.5 * np.sqrt(B / (5 * L))], rtol=1e-10
+    )
 
 
-def test_envelope_theorem_lower_bound_of_the_qp():
-    """For a lower bound, `H = lo - x`, so `dF*/dlo = +mu`."""
-    value = lambda lo: _solve_box(T, lo, UP, jnp.zeros(5)).value
-    grad = jax.grad(value)(LO)
+def test_envelope_theorem_bounds_of_the_qp():
+    """For a lower bound, `H = lo - x`, so `dF*/dlo = +mu`; for an upper bound
+    `dF*/dup = -mu` (reverse mode)."""
+    value = lambda lo, up: _solve_box(T, lo, up, jnp.zeros(5)).value
+    grad_lo, grad_up = jax.grad(value, argnums=(0, 1))(LO, UP)
     sol = _solve_box(T, LO, UP, jnp.zeros(5))
-    np.testing.assert_allclose(grad, sol.inequality_multipliers[:5], atol=1e-10)
-    grad_up = jax.grad(lambda up: _solve_box(T, LO, up, jnp.zeros(5)).value)(UP)
+    np.testing.assert_allclose(grad_lo, sol.inequality_multipliers[:5], atol=1e-10)
     np.testing.assert_allclose(grad_up, -sol.inequality_multipliers[5:], atol=1e-10)
+    assert np.all(np.isfinite(grad_lo)) and np.all(np.isfinite(grad_up))
 
 
 def test_vmap_active_set_differs():
@@ -460,7 +473,10 @@ def test_not_an_optimum_is_not_a_success():
         )
         assert sol.result == cjax.RESULTS.not_an_optimum
         assert sol.kind == cjax.EXTREMUM.unknown
-    sol = cjax.extremize(f, jnp.array([1.5]), lower=-1.0, upper=1.0, sense="minimize")
+    sol = cjax.extremize(
+        f, jnp.array([1.5]), lower=-1.0, upper=1.0, sense="minimize", throw=False
+    )
+    assert sol.result == cjax.RESULTS.successful
     np.testing.assert_allclose(sol.x, [1.0], atol=1e-12)
     np.testing.assert_allclose(sol.inequality_multipliers, [0.0, 2.0], atol=1e-10)
     assert sol.kind == cjax.EXTREMUM.isolated
