@@ -30,6 +30,7 @@ import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import jax.scipy as jsp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, PyTree
 
@@ -126,11 +127,14 @@ class _State(eqx.Module):
 
 
 class _SemismoothNewton(AbstractKKTSolver):
-    """Semismooth Newton on `r(z) = 0` with an Armijo line search on
-    `Psi = |r|^2 / 2` and a Levenberg-Marquardt fallback. Dense: the Jacobian is
-    formed by forward-mode autodiff. Converged when a full Newton step is within
-    `atol + rtol |z|` (root mean square of the scaled step below 1); the step is
-    then taken."""
+    """Semismooth Newton on `r(z) = 0`. Dense: the Jacobian is formed by
+    forward-mode autodiff and LU-factored. The Newton step is damped by Deuflhard's
+    natural monotonicity test (as in [`constrained_jax.Newton`][]); where the
+    Jacobian is singular or that test fails, a Levenberg-Marquardt step with an
+    Armijo line search on `Psi = |r|^2 / 2` is taken instead (a descent direction
+    of `Psi` whenever `grad Psi = J^T r != 0`). Converged when a full Newton step is
+    within `atol + rtol |z|` (root mean square of the scaled step below 1); the
+    step is then taken."""
 
     rtol: float
     atol: float
@@ -153,9 +157,13 @@ class _SemismoothNewton(AbstractKKTSolver):
         psi = 0.5 * jnp.dot(r, r)
         grad_psi = jac.T @ r
         finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(jac))
+        one = jnp.ones((), dtype)
 
-        # The Newton direction, if the Jacobian is (numerically) invertible.
-        dz_newton = jnp.linalg.solve(jnp.where(finite, jac, 0.0), -r)
+        # The Newton direction, if the Jacobian is (numerically) invertible; the
+        # same factorisation gives the simplified Newton corrections.
+        factors = jsp.linalg.lu_factor(jnp.where(finite, jac, 0.0))
+        newton_solve = lambda rhs: jsp.linalg.lu_solve(factors, rhs)
+        dz_newton = newton_solve(-r)
         check = jnp.linalg.norm(jac @ dz_newton + r)
         newton_ok = (
             finite
@@ -164,10 +172,35 @@ class _SemismoothNewton(AbstractKKTSolver):
         )
         dz_newton = jnp.where(newton_ok, dz_newton, 0.0)
         scale = atol + rtol * jnp.abs(z)
-        step_norm = jnp.sqrt(jnp.mean(jnp.square(dz_newton / scale)))
+        norm = lambda v: jnp.sqrt(jnp.mean(jnp.square(v / scale)))
+        step_norm = norm(dz_newton)
         converged = (psi == 0) | (newton_ok & (step_norm < 1))
 
-        # Levenberg-Marquardt: always a descent direction of Psi.
+        # Deuflhard's natural monotonicity test on the Newton direction, as in
+        # `Newton`: the simplified correction at the trial point must shrink.
+        def contraction(alpha):
+            simplified = newton_solve(-res(z + alpha * dz_newton))
+            theta = norm(simplified) / jnp.where(step_norm > 0, step_norm, 1.0)
+            return jnp.where(jnp.isfinite(theta), theta, jnp.inf)
+
+        def nm_cond(c):
+            alpha, theta, it = c
+            return (
+                jnp.invert(theta <= 1 - alpha / 4)
+                & (it < self.max_backtracks)
+                & newton_ok
+            )
+
+        def nm_body(c):
+            alpha, _, it = c
+            alpha = 0.5 * alpha
+            return alpha, contraction(alpha), it + 1
+
+        alpha_n, theta, _ = lax.while_loop(nm_cond, nm_body, (one, contraction(one), 0))
+        ok_n = newton_ok & (theta <= 1 - alpha_n / 4)
+
+        # Otherwise Levenberg-Marquardt, always a descent direction of Psi, with an
+        # Armijo line search on Psi.
         jtj = jac.T @ jac
         nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(
             jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
@@ -182,7 +215,7 @@ class _SemismoothNewton(AbstractKKTSolver):
             value = 0.5 * jnp.dot(r_, r_)
             return jnp.where(jnp.isfinite(value), value, jnp.inf)
 
-        def line_search(dz):
+        def armijo(dz):
             slope = jnp.dot(grad_psi, dz)
             descent = slope < 0
 
@@ -198,23 +231,20 @@ class _SemismoothNewton(AbstractKKTSolver):
                 alpha = 0.5 * alpha
                 return alpha, accept(alpha), it + 1
 
-            one = jnp.ones((), dtype)
             alpha, ok, _ = lax.while_loop(cond, body, (one, accept(one), 0))
             return alpha, ok & descent
 
-        alpha_n, ok_n = line_search(dz_newton)
-        ok_n = ok_n & newton_ok
         alpha_lm, ok_lm = lax.cond(
-            ok_n,
+            ok_n | converged,
             lambda: (jnp.zeros((), dtype), jnp.array(False)),
-            lambda: line_search(dz_lm),
+            lambda: armijo(dz_lm),
         )
         dz = jnp.where(ok_n, alpha_n * dz_newton, alpha_lm * dz_lm)
         dz = jnp.where(converged, dz_newton, dz)
         moved = converged | ok_n | ok_lm
         z_new = jnp.where(moved, z + dz, z)
         result = RESULTS.where(
-            converged | moved,
+            moved,
             RESULTS.successful,
             RESULTS.where(
                 finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective

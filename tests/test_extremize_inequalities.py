@@ -491,3 +491,59 @@ def test_no_inequalities_unchanged_fields():
     assert sol.active.shape == (0,) and sol.active.dtype == bool
     ref = cyl.closed_form(B, L)
     np.testing.assert_allclose(sol.x, [ref["a"], ref["h"]], rtol=1e-12)
+
+
+def _rosenbrock(x, args):
+    return (1 - x[0]) ** 2 + 100 * (x[1] - x[0] ** 2) ** 2
+
+
+def _disk(x, args):
+    return jnp.sum(x**2) - args
+
+
+@jax.jit
+def _rosenbrock_in_disk(r2, x0):
+    return cjax.extremize(
+        _rosenbrock, x0, r2, inequalities=_disk, sense="minimize", throw=False
+    )
+
+
+@pytest.mark.parametrize(
+    "r2, x0",
+    [(1.5, (-1.2, 1.0)), (1.0, (3.0, -4.0)), (0.5, (0.0, 0.0)), (3.0, (9.0, 9.0))],
+)
+def test_rosenbrock_in_a_disk_against_scipy(r2, x0):
+    """A nonconvex objective from feasible and infeasible starts (the classic
+    (-1.2, 1) among them), against SLSQP; the disk binds unless it holds (1, 1)."""
+    sol = _rosenbrock_in_disk(jnp.asarray(r2), jnp.asarray(x0))
+    ref = scipy.optimize.minimize(
+        lambda x: (1 - x[0]) ** 2 + 100 * (x[1] - x[0] ** 2) ** 2,
+        np.zeros(2),
+        jac=lambda x: np.array(
+            [
+                -2 * (1 - x[0]) - 400 * x[0] * (x[1] - x[0] ** 2),
+                200 * (x[1] - x[0] ** 2),
+            ]
+        ),
+        method="SLSQP",
+        constraints=[
+            {"type": "ineq", "fun": lambda x: r2 - x @ x, "jac": lambda x: -2 * x}
+        ],
+        options={"ftol": 1e-15, "maxiter": 1000},
+    )
+    assert sol.result == cjax.RESULTS.successful
+    assert sol.kind == cjax.EXTREMUM.minimum
+    binds = r2 < 2.0
+    if binds:  # (SLSQP stops 1e-5 short of (1, 1) in the free case)
+        np.testing.assert_allclose(sol.x, ref.x, atol=1e-7)
+        np.testing.assert_allclose(sol.x @ sol.x, r2, rtol=1e-12)
+    assert bool(sol.active[0]) == binds
+    if binds:
+        # Stationarity along x: grad F + 2 mu x = 0, mu > 0.
+        grad = np.asarray(jax.grad(_rosenbrock)(sol.x, None))
+        mu = -grad[0] / (2 * sol.x[0])
+        np.testing.assert_allclose(sol.inequality_multipliers, [mu], rtol=1e-8)
+        assert mu > 0
+    else:
+        np.testing.assert_allclose(sol.x, [1.0, 1.0], atol=1e-12)
+        assert sol.inequality_multipliers[0] == 0
