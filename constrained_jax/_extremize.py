@@ -905,7 +905,7 @@ def _extremize_inequalities(
     x, lam, mu = z[:n], z[n : n + k], z[n + k :]
     # Inactive: mu_i = 0 exactly (the iteration leaves round-off there; its
     # derivative is zero by `_rewrite` anyway).
-    mu = jnp.where(active, mu, 0.0)
+    mu = mu * active.astype(dtype)
     value = objective_flat(x, args)
     residual = problem.residual(zs, aug)
     stats = {

@@ -342,7 +342,9 @@ def _rewrite(z, residual, inputs):
     weight = strict.astype(z.dtype)
     _, _, mu = problem.split(z)
     grad_star, g, h = problem.stationarity(z, args, mu_weight=weight)
-    return jnp.concatenate([grad_star, g, jnp.where(strict, h, mu)])
+    # A blend, not `jnp.where`: reverse mode then carries the NaN cotangents of a
+    # failed solve into every input (`where` would send them a zero).
+    return jnp.concatenate([grad_star, g, weight * h + (1 - weight) * mu])
 
 
 def inequality_solve(

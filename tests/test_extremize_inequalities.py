@@ -335,6 +335,12 @@ def test_envelope_theorem_bounds_of_the_qp():
     np.testing.assert_allclose(grad_lo, sol.inequality_multipliers[:5], atol=1e-10)
     np.testing.assert_allclose(grad_up, -sol.inequality_multipliers[5:], atol=1e-10)
     assert np.all(np.isfinite(grad_lo)) and np.all(np.isfinite(grad_up))
+    # A failed solve (crossed bounds: infeasible) has NaN derivatives, never zeros
+    # (an infinite bound, a placeholder row, has none).
+    crossed = UP.at[1].set(-2.0)
+    grad_lo, grad_up = jax.grad(value, argnums=(0, 1))(LO, crossed)
+    finite_lo, finite_up = np.isfinite(LO), np.isfinite(crossed)
+    assert np.all(np.isnan(grad_lo[finite_lo])) and np.all(np.isnan(grad_up[finite_up]))
 
 
 def test_vmap_active_set_differs():
