@@ -373,20 +373,21 @@ def extremize(
     The complementarity conditions are written with the Fischer-Burmeister function
     `phi(s mu_i, -H_i) = 0`, `phi(a, b) = a + b - sqrt(a^2 + b^2)`, and the square
     system in `(x, lambda, mu)` is solved by a semismooth Newton method (a dense
-    Jacobian by forward-mode autodiff) with an Armijo line search on `|r|^2 / 2`
-    and a Levenberg-Marquardt step where the Newton step fails, from any start,
-    feasible or not. `solver` must be `None` or a [`constrained_jax.Newton`][]:
-    its `rtol`, `atol` give the stopping test (as for equalities), its
-    `linear_solver` the backward pass. After the iteration the KKT conditions are
-    checked, relative to `max(1, |mu|)` for `mu`, `max(1, |x|) |grad H_i|` for
-    `H_i`, `max(1, |grad F|)` for stationarity and `max(1, |x|)` for `G`, to
-    `tol = sqrt(max(rtol, atol, 100 eps))` (`sol.stats["kkt_tolerance"]`,
-    `1e-5` by default; the violation found is `sol.stats["kkt_violation"]`): a
-    point that fails them is never successful (`RESULTS.infeasible_inequalities`
-    where some `H_i > 0`, `RESULTS.kkt_conditions_violated` otherwise).
-    `sol.active` marks the inequalities whose `H_i` is the zero of the
-    complementary pair (`|H_i|` within `max(rtol, atol)` relative, or smaller than
-    `|mu_i|` in those units); `mu` is exactly zero on the others.
+    Jacobian by forward-mode autodiff, LU-factored), damped by the natural monotonicity
+    test of [`constrained_jax.Newton`][], with a Levenberg-Marquardt step and an Armijo
+    line search on `|r|^2 / 2` where the Newton step fails, from any start, feasible or
+    not (with `mu0 = 0`). `solver` must be `None` or a [`constrained_jax.Newton`][]: its
+    `rtol`, `atol` give the stopping test (as for equalities), its `linear_solver` the
+    backward pass. After the iteration the KKT conditions are checked, relative to
+    `max(1, |mu|)` for `mu`, `max(1, |x|) |grad H_i|` for `H_i`, `max(1, |grad F|)` for
+    stationarity and `max(1, |x|)` for `G`, to `tol = sqrt(max(rtol, atol, 100 eps))`
+    (`sol.stats["kkt_tolerance"]`, `1e-5` by default; the violation found is
+    `sol.stats["kkt_violation"]`): a point that fails them is never successful
+    (`RESULTS.infeasible_inequalities` where some `H_i > 0`,
+    `RESULTS.kkt_conditions_violated` otherwise). `sol.active` marks the inequalities
+    whose `H_i` is the zero of the complementary pair (`|H_i|` within `max(rtol, atol)`
+    relative, or smaller than `|mu_i|` in those units); `mu` is exactly zero on the
+    others.
 
     `kind` is judged on the tangent space of `G` and of the *strictly* active
     inequalities (active with `|mu_i|` above `max(rtol, atol)` relative). Weakly

@@ -11,11 +11,14 @@ vanishes, so the unknowns `z = (x, lambda, mu)` solve the `n + k + m` equations
 
     grad F + J^T lambda + A^T mu = 0,    G = 0,    phi(s mu, -H) = 0
 
-(`J = dG/dx`, `A = dH/dx`). They are solved by a semismooth Newton method globalised
-by an Armijo line search on the merit `Psi = |r|^2 / 2`, which is continuously
-differentiable (De Luca, Facchinei and Kanzow 1996), with a Levenberg-Marquardt step
-where the Newton step is not a descent direction (a singular Jacobian: degenerate
-vertices, dependent active constraints).
+(`J = dG/dx`, `A = dH/dx`). They are solved by a semismooth Newton method whose
+steps are damped by Deuflhard's natural monotonicity test (the globalisation of
+[`constrained_jax.Newton`][]); where the Jacobian is singular (degenerate vertices,
+dependent active constraints) or that test fails, a Levenberg-Marquardt step with an
+Armijo line search on the merit `Psi = |r|^2 / 2`, which is continuously
+differentiable for this `phi` (De Luca, Facchinei and Kanzow 1996). (An Armijo search
+on `Psi` alone stalled at a local minimum of `|grad F|^2` on Rosenbrock's function
+from (-1.2, 1); the monotonicity test, being affine invariant, does not.)
 
 **References:** A. Fischer, *A special Newton-type optimization method*,
 Optimization 24 (1992) 269-284; T. De Luca, F. Facchinei and C. Kanzow, *A semismooth
