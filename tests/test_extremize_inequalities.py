@@ -488,6 +488,22 @@ def test_not_an_optimum_is_not_a_success():
     assert sol.kind == cjax.EXTREMUM.isolated
 
 
+def test_sense_without_inequalities_checks_the_kind():
+    """The lecture's cylinder is a maximum of V on G = 0: asking to minimize is
+    `not_an_optimum`, never a silent success."""
+    args = {"b": jnp.asarray(B), "l": jnp.asarray(L)}
+    sol = cjax.extremize(
+        cyl.volume,
+        cyl.initial_guess(B, L),
+        args,
+        constraints=cyl.constraint,
+        sense="minimize",
+        throw=False,
+    )
+    assert sol.result == cjax.RESULTS.not_an_optimum
+    assert sol.kind == cjax.EXTREMUM.unknown
+
+
 def test_no_inequalities_unchanged_fields():
     args = {"b": jnp.asarray(B), "l": jnp.asarray(L)}
     sol = cjax.extremize(
