@@ -795,6 +795,15 @@ def _extremize_inequalities(
     upper = _flat_bound(upper, x0, "upper", dtype)
     m = m_user + (0 if lower is None else n) + (0 if upper is None else n)
     ineq_flat = _flat_inequalities(inequalities, unravel, m_user, lower, upper)
+    if n + k + m > DENSE_WARN:
+        size = n + k + m
+        warnings.warn(
+            f"`extremize` with inequalities forms the dense {size} x {size} Jacobian "
+            f"of the KKT system (n + k + m = {size}; bounds add n rows each) and "
+            "factors it at every step, in O((n + k + m)^3) time: expect it to be "
+            "slow. There is no matrix-free inequality solver yet.",
+            stacklevel=2,
+        )
     sign = 1.0 if sense == "minimize" else -1.0
 
     # The bounds travel with `args` so that they are differentiated like it.
