@@ -343,6 +343,24 @@ def test_envelope_theorem_bounds_of_the_qp():
     assert np.all(np.isnan(grad_lo[finite_lo])) and np.all(np.isnan(grad_up[finite_up]))
 
 
+def test_weakly_active_bound_is_treated_as_inactive():
+    """`t_0 = up_0`: the bound holds with `mu = 0` (degenerate). It is reported
+    active, and differentiated as if it were absent (the documented one-sided
+    derivative, `dx_0/dup_0 = 0`; the other side would give 1), while the strictly
+    active lower bounds of `x_1`, `x_4` move their coordinates one for one."""
+    t = T.at[0].set(UP[0])
+    sol = _solve_box(t, LO, UP, jnp.zeros(5))
+    assert sol.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(sol.x, np.clip(t, LO, UP), atol=1e-12)
+    assert bool(sol.active[5]) and sol.inequality_multipliers[5] == 0
+    assert sol.kind == cjax.EXTREMUM.minimum
+    dx_dlo, dx_dup = jax.jacfwd(
+        lambda lo, up: _solve_box(t, lo, up, jnp.zeros(5)).x, argnums=(0, 1)
+    )(LO, UP)
+    np.testing.assert_allclose(dx_dlo, np.diag([0.0, 1.0, 0.0, 0.0, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(dx_dup, np.zeros((5, 5)), atol=1e-12)
+
+
 def test_vmap_active_set_differs():
     h_maxes = jnp.array([0.4, 0.9, 1.2, 3.0])
     sols = jax.vmap(lambda hm: _capped_cylinder(jnp.asarray(B), jnp.asarray(L), hm))(
