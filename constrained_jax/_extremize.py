@@ -500,19 +500,7 @@ def _extremize(
     objective, x0, args, constraints, solver, multipliers0, max_steps, throw, sense
 ):
     check_kkt_solver(Newton() if solver is None else solver, max_steps)
-    if not callable(objective):
-        raise ValueError("`objective` must be a callable F(x, args) -> scalar.")
-    if constraints is not None and not callable(constraints):
-        raise ValueError("`constraints` must be a callable G(x, args) -> (k,) or None.")
-
-    leaves = jtu.tree_leaves(x0)
-    if not leaves:
-        raise ValueError("`x0` has no arrays in it: pass the starting point.")
-    for leaf in leaves:
-        if not jnp.issubdtype(jnp.result_type(leaf), jnp.number):
-            raise ValueError(
-                f"`x0` must hold numbers, got dtype {jnp.result_type(leaf)}."
-            )
+    _check_callables(objective, constraints, x0)
     x_flat, unravel = jfu.ravel_pytree(x0)
     objective_flat = lambda x, a: objective(unravel(x), a)
     constraints_flat = (
