@@ -406,7 +406,10 @@ def extremize(
     strictly active inequalities as equalities and the others held at `mu_i = 0`:
     exact where strict complementarity holds. At a weakly active inequality the
     derivative is one-sided: that of the problem without it (correct for
-    perturbations that make it inactive, wrong for those that make it bind).
+    perturbations that make it inactive, wrong for those that make it bind). Where
+    the strictly active constraints are dependent (a degenerate vertex, with
+    multipliers that are not unique) that reduced system is singular and the
+    derivatives are NaN.
     """
     args = as_traced_args(args)
     x0 = jtu.tree_map(inexact_asarray, x0)
