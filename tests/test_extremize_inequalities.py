@@ -285,6 +285,22 @@ def test_capped_cylinder_closed_form(h_max):
     assert sol.kind == (cjax.EXTREMUM.isolated if capped else cjax.EXTREMUM.maximum)
 
 
+def test_scene_capped_closed_form_is_the_hand_derivation():
+    """`scenes.cylinder_volume.capped_closed_form` (the tour's reference) against the
+    derivation above, and `solve_capped` against both."""
+    for h_max in (0.6, 1.0, 1.5):
+        ref = _capped_closed_form(B, L, h_max)
+        scene = cyl.capped_closed_form(B, L, h_max)
+        for key, name in [("a", "a"), ("h", "h"), ("lambda", "multiplier"),
+                          ("mu", "cap_multiplier"), ("V", "volume")]:  # fmt: skip
+            np.testing.assert_allclose(scene[name], ref[key], rtol=1e-14, atol=1e-15)
+        assert bool(scene["active"]) == (h_max < np.sqrt(B * L / 5))
+    ref = _capped_closed_form(B, L, 0.6)
+    sol = cyl.solve_capped(B, L, 0.6)
+    np.testing.assert_allclose(sol.x, [ref["a"], ref["h"]], rtol=1e-12)
+    np.testing.assert_allclose(sol.inequality_multipliers[1], ref["mu"], rtol=1e-10)
+
+
 def _value_and_x(l, h_max):
     sol = _capped_cylinder(jnp.asarray(B), l, h_max)
     return sol.value, sol.x
