@@ -2,21 +2,25 @@
 
 Extremize `F(x)` subject to `G_j(x) = 0` by freely extremizing
 `F*(x, lambda) = F(x) + sum_j lambda_j G_j(x)` over `x` and `lambda`: the `n + k`
-equations `grad F + sum_j lambda_j grad G_j = 0`, `G_j = 0`.
+equations `grad F + sum_j lambda_j grad G_j = 0`, `G_j = 0`. With inequalities
+`H_i(x) <= 0` the KKT conditions gain multipliers `mu` and complementarity, solved
+in `constrained_jax._inequalities`.
 """
 
 import warnings
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
 import jax.flatten_util as jfu
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
 from ._implicit import nan_tangent_where
+from ._inequalities import inequality_solve, InequalityProblem
 from ._kkt import (
     check_kkt_solver,
     constraint_jacobian,
@@ -118,6 +122,15 @@ class Extremum(eqx.Module):
         `grad F + sum_j lambda_j grad G_j = 0`.
     - `value`: `F(x)`. By the envelope theorem its derivative with respect to a
         parameter `p` is `dF/dp + lambda . dG/dp`.
+    - `inequality_multipliers`: the multipliers `mu` of the inequalities `H_i <= 0`,
+        shape `(m,)`, in the convention `grad F + lambda . grad G + mu . grad H = 0`,
+        `mu_i H_i = 0`: `mu >= 0` for `sense="minimize"`, `mu <= 0` for
+        `sense="maximize"`. The rows are the user's `H`, then one per entry of
+        `lower` (`H = lower - x`), then one per entry of `upper` (`H = x - upper`).
+        Shape `(0,)` without inequalities.
+    - `active`: boolean, shape `(m,)`: where `H_i = 0` at the solution (the
+        binding inequalities; see `extremize` for the tolerance). Shape `(0,)`
+        without inequalities.
     - `kind`: an [`constrained_jax.EXTREMUM`][] member; `EXTREMUM.unknown` whenever
         `result` is not successful (the point where a failed solve stopped is not a
         stationary point, so it is neither a minimum nor a maximum).
@@ -131,7 +144,11 @@ class Extremum(eqx.Module):
         vanishes where the constraint holds, e.g. `G = g(x)**2`),
         `infeasible_constraints` (the iterates approach a stationary point of `|G|^2`
         with `G != 0`), `line_search_failed`, `linear_solve_failed` (an iterative
-        linear solver did not converge), `nonlinear_max_steps_reached`.
+        linear solver did not converge), `nonlinear_max_steps_reached`; with
+        inequalities also `infeasible_inequalities` (the solve stopped where some
+        `H_i > 0`), `kkt_conditions_violated` (the iteration stopped but the KKT
+        conditions do not hold to tolerance) and, whenever `sense` is given,
+        `not_an_optimum` (a KKT point whose second-order test contradicts `sense`).
     - `stats`: `num_steps`, `max_steps`, the extreme eigenvalues of the reduced
         Hessian (`reduced_hessian_eigenvalues`, `[min, max]`) and the final KKT
         residual (`kkt_residual`, root mean square).
@@ -173,6 +190,8 @@ class Extremum(eqx.Module):
     kind: EXTREMUM
     result: RESULTS
     stats: dict[str, Any]
+    inequality_multipliers: Float[Array, " m"]
+    active: Bool[Array, " m"]
 
 
 def _flat_constraints(constraints, unravel):
@@ -267,6 +286,10 @@ def extremize(
     args: Args = None,
     *,
     constraints: ConstraintFn | None = None,
+    inequalities: ConstraintFn | None = None,
+    lower: PyTree[ArrayLike] | None = None,
+    upper: PyTree[ArrayLike] | None = None,
+    sense: Literal["minimize", "maximize"] | None = None,
     solver: AbstractKKTSolver | None = None,
     multipliers0: Float[Array, " k"] | None = None,
     max_steps: int = 256,
@@ -289,6 +312,17 @@ def extremize(
         into arrays, so changing them never recompiles; anything that must stay static
         belongs in the closure of `F`.
     - `constraints`: `G(x, args) -> (k,)` (a scalar means one constraint), or `None`.
+    - `inequalities`: `H(x, args) -> (m,)` (a scalar means one inequality), the
+        constraints `H_i(x) <= 0`, or `None`.
+    - `lower`, `upper`: bounds `lower <= x <= upper`, or `None`: a scalar (for every
+        entry of `x`), an array that broadcasts to `x0`, or a pytree with the
+        structure of `x0` whose leaves broadcast to its leaves. An infinite entry
+        (`-inf` in `lower`, `inf` in `upper`) means no bound. They are folded into
+        `H` (see `inequality_multipliers` below) and are differentiable like `args`.
+    - `sense`: `"minimize"` or `"maximize"`; required with inequalities or bounds
+        (it fixes the sign of `mu`, see below). Without them it is optional: the
+        equality-constrained solve is unchanged, and a successful point whose `kind`
+        contradicts `sense` is reported as `RESULTS.not_an_optimum`.
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][], or `None` (default):
         `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the size
         `n + k` of the KKT system: [`constrained_jax.DenseLU`][] up to 256 unknowns,
@@ -317,14 +351,108 @@ def extremize(
 
         Which stationary point is found depends on `x0`: Newton's method on the KKT
         system converges to nearby minima, maxima and saddles alike. Check `kind`.
+
+    **Inequalities.** With `inequalities`, `lower` or `upper` the KKT conditions are
+
+        grad F + sum_j lambda_j grad G_j + sum_i mu_i grad H_i = 0,    G = 0,
+        H <= 0,    s mu >= 0,    mu_i H_i = 0,
+
+    with `s = +1` for `sense="minimize"` and `s = -1` for `"maximize"`: the *same*
+    stationarity formula in both senses, so `mu >= 0` when minimizing and `mu <= 0`
+    when maximizing. The envelope theorem then reads `dF*/dp = dF/dp + lambda .
+    dG/dp + mu . dH/dp` in both senses; for an upper bound `H = x - b`,
+    `dF*/db = -mu`, for a lower bound `H = b - x`, `dF*/db = +mu`.
+
+    The rows of `H` (and of `sol.inequality_multipliers`, `sol.active`) are the
+    user's `H` (`m_H` rows), then `n` rows `lower - x` if `lower` is given, then
+    `n` rows `x - upper` if `upper` is given (`n` the size of the flattened `x`, in
+    the order of `jax.flatten_util.ravel_pytree(x0)`). An infinite bound keeps its
+    row, with `H = -1` (never active) and `mu = 0`, so that the shapes do not depend
+    on the values (bounds may be traced, batched and differentiated).
+
+    The complementarity conditions are written with the Fischer-Burmeister function
+    `phi(s mu_i, -H_i) = 0`, `phi(a, b) = a + b - sqrt(a^2 + b^2)`, and the square
+    system in `(x, lambda, mu)` is solved by a semismooth Newton method (a dense
+    Jacobian by forward-mode autodiff, LU-factored), damped by the natural monotonicity
+    test of [`constrained_jax.Newton`][], with a Levenberg-Marquardt step and an Armijo
+    line search on `|r|^2 / 2` where the Newton step fails, from any start, feasible or
+    not (with `mu0 = 0`). `solver` must be `None` or a [`constrained_jax.Newton`][]: its
+    `rtol`, `atol` give the stopping test (as for equalities), its `linear_solver` the
+    backward pass. After the iteration the KKT conditions are checked, relative to
+    `max(1, |mu|)` for `mu`, `max(1, |x|) |grad H_i|` for `H_i`, `max(1, |grad F|)` for
+    stationarity and `max(1, |x|)` for `G`, to `tol = sqrt(max(rtol, atol, 100 eps))`
+    (`sol.stats["kkt_tolerance"]`, `1e-5` by default; the violation found is
+    `sol.stats["kkt_violation"]`): a point that fails them is never successful
+    (`RESULTS.infeasible_inequalities` where some `H_i > 0`,
+    `RESULTS.kkt_conditions_violated` otherwise). `sol.active` marks the inequalities
+    whose `H_i` is the zero of the complementary pair (`|H_i|` within `max(rtol, atol)`
+    relative, or smaller than `|mu_i|` in those units); `mu` is exactly zero on the
+    others.
+
+    `kind` is judged on the tangent space of `G` and of the *strictly* active
+    inequalities (active with `|mu_i|` above `max(rtol, atol)` relative). Weakly
+    active ones (`H_i = 0`, `mu_i = 0`) make that space larger than the critical
+    cone, so an indefinite answer is then reported as `EXTREMUM.degenerate`
+    (inconclusive). When the active constraints leave no tangent space, `kind` is
+    `EXTREMUM.isolated` (a vertex: first-order conditions with the sign of `mu`
+    suffice). A successful point whose `kind` contradicts `sense` (a maximum or a
+    saddle when minimizing, a minimum or a saddle when maximizing) is
+    `RESULTS.not_an_optimum`. Newton finds a nearby KKT point, not the best one:
+    from inside the box, minimizing `-x^2` on `[-1, 1]` finds the KKT point `x = 0`
+    (reported `not_an_optimum`), from outside it `x = 1`.
+
+    Derivatives with respect to `args`, `lower`, `upper` (and arrays `F`, `G`, `H`
+    close over) come from the implicit function theorem on the KKT system with the
+    strictly active inequalities as equalities and the others held at `mu_i = 0`:
+    exact where strict complementarity holds. At a weakly active inequality the
+    derivative is one-sided: that of the problem without it (correct for
+    perturbations that make it inactive, wrong for those that make it bind). Where
+    the strictly active constraints are dependent (a degenerate vertex, with
+    multipliers that are not unique) that reduced system is singular and the
+    derivatives are NaN.
     """
     args = as_traced_args(args)
     x0 = jtu.tree_map(inexact_asarray, x0)
-    return _extremize(
+    with_inequalities = not (inequalities is None and lower is None and upper is None)
+    if sense not in (None, "minimize", "maximize"):
+        raise ValueError(
+            f'`sense` must be "minimize", "maximize" or None, got {sense!r}.'
+        )
+    if with_inequalities and sense is None:
+        raise ValueError(
+            "With inequalities (`inequalities`, `lower` or `upper`) the problem is an "
+            'optimization: pass `sense="minimize"` or `sense="maximize"`. It decides '
+            "the sign of the inequality multipliers (mu >= 0 to minimize, mu <= 0 to "
+            "maximize), so it has no default."
+        )
+    if inequalities is not None and not callable(inequalities):
+        raise ValueError(
+            "`inequalities` must be a callable H(x, args) -> (m,) or None."
+        )
+    lower = None if lower is None else jtu.tree_map(jnp.asarray, lower)
+    upper = None if upper is None else jtu.tree_map(jnp.asarray, upper)
+    _check_concrete_bounds(lower, upper)
+    if not with_inequalities:
+        return _extremize(
+            objective,
+            x0,
+            args,
+            constraints,
+            solver,
+            multipliers0,
+            max_steps,
+            throw,
+            sense,
+        )
+    return _extremize_inequalities(
         objective,
         x0,
         args,
         constraints,
+        inequalities,
+        lower,
+        upper,
+        sense,
         solver,
         multipliers0,
         max_steps,
@@ -332,16 +460,34 @@ def extremize(
     )
 
 
-@eqx.filter_jit
-def _extremize(
-    objective, x0, args, constraints, solver, multipliers0, max_steps, throw
-):
-    check_kkt_solver(Newton() if solver is None else solver, max_steps)
+def _check_concrete_bounds(lower, upper) -> None:
+    """`lower > upper` anywhere, when both are known outside any trace: ValueError.
+    (Traced bounds that cross give `RESULTS.infeasible_inequalities`.)"""
+    if lower is None or upper is None:
+        return
+    lo_leaves, up_leaves = jtu.tree_leaves(lower), jtu.tree_leaves(upper)
+    if any(isinstance(v, jax.core.Tracer) for v in lo_leaves + up_leaves):
+        return
+    if len(lo_leaves) != len(up_leaves):
+        return  # The shape check inside says what is wrong.
+    for lo, up in zip(lo_leaves, up_leaves, strict=True):
+        try:
+            crossed = np.any(np.asarray(lo) > np.asarray(up))
+        except ValueError:
+            return  # Shapes that do not broadcast: reported inside.
+        if crossed:
+            raise ValueError(
+                "`lower > upper` for some entries: no x satisfies the bounds. Check "
+                "the bounds (an entry with no bound is `-inf` in `lower` or `inf` in "
+                "`upper`)."
+            )
+
+
+def _check_callables(objective, constraints, x0):
     if not callable(objective):
         raise ValueError("`objective` must be a callable F(x, args) -> scalar.")
     if constraints is not None and not callable(constraints):
         raise ValueError("`constraints` must be a callable G(x, args) -> (k,) or None.")
-
     leaves = jtu.tree_leaves(x0)
     if not leaves:
         raise ValueError("`x0` has no arrays in it: pass the starting point.")
@@ -350,6 +496,14 @@ def _extremize(
             raise ValueError(
                 f"`x0` must hold numbers, got dtype {jnp.result_type(leaf)}."
             )
+
+
+@eqx.filter_jit
+def _extremize(
+    objective, x0, args, constraints, solver, multipliers0, max_steps, throw, sense
+):
+    check_kkt_solver(Newton() if solver is None else solver, max_steps)
+    _check_callables(objective, constraints, x0)
     x_flat, unravel = jfu.ravel_pytree(x0)
     objective_flat = lambda x, a: objective(unravel(x), a)
     constraints_flat = (
@@ -453,6 +607,7 @@ def _extremize(
         RESULTS.nonfinite_objective,
         result,
     )
+    result = _check_sense(result, kind, sense, jnp.array(False))
     failed = result != RESULTS.successful
     kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
 
@@ -470,6 +625,8 @@ def _extremize(
         kind=kind,
         result=result,
         stats=stats,
+        inequality_multipliers=jnp.zeros((0,), dtype),
+        active=jnp.zeros((0,), bool),
     )
     if throw:
         sol = result.error_if(sol, failed)
@@ -494,3 +651,282 @@ def _classify(extremes: Float[Array, "2"], n: int, k: int, dtype) -> EXTREMUM:
             ),
         ),
     )
+
+
+def _check_sense(result, kind, sense, inconclusive):
+    """`RESULTS.not_an_optimum` for a successful solve whose second-order test
+    contradicts `sense` (a maximum or a saddle when minimizing, a minimum or a saddle
+    when maximizing), unless the test is `inconclusive`."""
+    if sense is None:
+        return result
+    wrong = EXTREMUM.maximum if sense == "minimize" else EXTREMUM.minimum
+    contradicts = (kind == wrong) | (kind == EXTREMUM.saddle)
+    return RESULTS.where(
+        (result == RESULTS.successful) & contradicts & jnp.invert(inconclusive),
+        RESULTS.not_an_optimum,
+        result,
+    )
+
+
+def _flat_bound(bound, x0, name: str, dtype):
+    """`lower` or `upper` as a flat array matching `ravel_pytree(x0)`: a scalar or an
+    array broadcast to every leaf, or a pytree with the structure of `x0` whose
+    leaves broadcast to its leaves."""
+    if bound is None:
+        return None
+    x_leaves, x_def = jtu.tree_flatten(x0)
+    b_leaves, b_def = jtu.tree_flatten(bound)
+    if b_def == x_def:
+        pairs = list(zip(b_leaves, x_leaves, strict=True))
+    elif len(b_leaves) == 1 and (len(x_leaves) == 1 or jnp.ndim(b_leaves[0]) == 0):
+        pairs = [(b_leaves[0], leaf) for leaf in x_leaves]
+    else:
+        raise ValueError(
+            f"`{name}` must be a scalar, an array that broadcasts to `x0`, or a pytree "
+            f"with the structure of `x0` ({x_def}), got {b_def}."
+        )
+    flat = []
+    for b, leaf in pairs:
+        b = jnp.asarray(b)
+        if not (jnp.issubdtype(b.dtype, jnp.number) and not jnp.iscomplexobj(b)):
+            raise ValueError(f"`{name}` must hold real numbers, got dtype {b.dtype}.")
+        try:
+            shape = np.broadcast_shapes(b.shape, leaf.shape)
+        except ValueError:
+            shape = None
+        if shape != leaf.shape:
+            raise ValueError(
+                f"`{name}` has shape {b.shape}, which does not broadcast to the shape "
+                f"{leaf.shape} of `x0`: pass a scalar or an array of shape "
+                f"{leaf.shape} (an entry with no bound is `-inf` in `lower`, `inf` in "
+                "`upper`)."
+            )
+        flat.append(jnp.broadcast_to(b.astype(dtype), leaf.shape).ravel())
+    return jnp.concatenate(flat)
+
+
+def _flat_inequalities(inequalities, unravel, m_user, lower, upper):
+    """`H(x, (args, lower, upper))` on flat `x`: the user's rows, then `lower - x`,
+    then `x - upper`; an infinite bound gives the row `-1` (never active)."""
+
+    def h(x, aug):
+        args, lo, up = aug
+        rows = []
+        if m_user:
+            rows.append(jnp.atleast_1d(inequalities(unravel(x), args)))
+        if lower is not None:
+            rows.append(jnp.where(jnp.isfinite(lo), lo - x, -1.0))
+        if upper is not None:
+            rows.append(jnp.where(jnp.isfinite(up), x - up, -1.0))
+        return jnp.concatenate(rows)
+
+    return h
+
+
+def _check_inequalities(inequalities, x_flat, unravel, args):
+    """The number of the user's inequalities, checked like `G`."""
+    if inequalities is None:
+        return 0
+    h_struct = jax.eval_shape(lambda x: inequalities(unravel(x), args), x_flat)
+    if not isinstance(h_struct, jax.ShapeDtypeStruct) or h_struct.ndim > 1:
+        shape = getattr(h_struct, "shape", type(h_struct).__name__)
+        raise ValueError(
+            "The inequalities H(x, args) must return an array of shape (m,) (or a "
+            f"scalar for a single inequality H <= 0), but returned {shape}. Stack "
+            "them into one vector, e.g. `jnp.stack([h1, h2])` or `h.ravel()`."
+        )
+    if not jnp.issubdtype(h_struct.dtype, jnp.floating):
+        raise ValueError(
+            f"The inequalities H(x, args) must be floating point, got {h_struct.dtype}."
+        )
+    m = 1 if h_struct.ndim == 0 else h_struct.shape[0]
+    if m == 0:
+        raise ValueError(
+            "The inequalities returned an empty array: pass `inequalities=None`."
+        )
+    return m
+
+
+@eqx.filter_jit
+def _extremize_inequalities(
+    objective,
+    x0,
+    args,
+    constraints,
+    inequalities,
+    lower,
+    upper,
+    sense,
+    solver,
+    multipliers0,
+    max_steps,
+    throw,
+):
+    if solver is None:
+        solver = Newton()
+    if not isinstance(solver, Newton):
+        raise ValueError(
+            "With inequalities `extremize` runs a semismooth Newton method on a dense "
+            "Jacobian: pass `solver=None` or `cjax.Newton(rtol=..., atol=..., "
+            f"linear_solver=...)`, got {type(solver).__name__}."
+        )
+    check_kkt_solver(solver, max_steps)
+    _check_callables(objective, constraints, x0)
+    x_flat, unravel = jfu.ravel_pytree(x0)
+    dtype = x_flat.dtype
+    objective_flat = lambda x, a: objective(unravel(x), a)
+    constraints_flat = (
+        None if constraints is None else _flat_constraints(constraints, unravel)
+    )
+    n, k = _check_structure(
+        objective_flat, constraints_flat, x_flat, args, multipliers0
+    )
+    m_user = _check_inequalities(inequalities, x_flat, unravel, args)
+    lower = _flat_bound(lower, x0, "lower", dtype)
+    upper = _flat_bound(upper, x0, "upper", dtype)
+    m = m_user + (0 if lower is None else n) + (0 if upper is None else n)
+    ineq_flat = _flat_inequalities(inequalities, unravel, m_user, lower, upper)
+    if n + k + m > DENSE_WARN:
+        size = n + k + m
+        warnings.warn(
+            f"`extremize` with inequalities forms the dense {size} x {size} Jacobian "
+            f"of the KKT system (n + k + m = {size}; bounds add n rows each) and "
+            "factors it at every step, in O((n + k + m)^3) time: expect it to be "
+            "slow. There is no matrix-free inequality solver yet.",
+            stacklevel=2,
+        )
+    sign = 1.0 if sense == "minimize" else -1.0
+
+    # The bounds travel with `args` so that they are differentiated like it.
+    aug = (args, lower, upper)
+    objective_aug = lambda x, a: objective_flat(x, a[0])
+    constraints_aug = (
+        None if constraints_flat is None else lambda x, a: constraints_flat(x, a[0])
+    )
+    objective_aug = eqx.filter_closure_convert(objective_aug, x_flat, aug)
+    if constraints_aug is not None:
+        constraints_aug = eqx.filter_closure_convert(constraints_aug, x_flat, aug)
+    ineq_aug = eqx.filter_closure_convert(ineq_flat, x_flat, aug)
+    problem = InequalityProblem(objective_aug, constraints_aug, ineq_aug, n, k, m, sign)
+
+    bounds_ok = jnp.array(True)
+    if lower is not None:
+        bounds_ok = bounds_ok & jnp.all(
+            jnp.invert(jnp.isnan(lower)) & (lower < jnp.inf)
+        )
+    if upper is not None:
+        bounds_ok = bounds_ok & jnp.all(
+            jnp.invert(jnp.isnan(upper)) & (upper > -jnp.inf)
+        )
+    start_ok = all_finite((x_flat, args, multipliers0)) & bounds_ok
+    x_safe = jnp.where(start_ok, x_flat, 0.0)
+    f0, grad0 = jax.value_and_grad(objective_flat)(x_safe, args)
+    if k == 0:
+        lam0 = jnp.zeros((0,), dtype)
+    elif multipliers0 is None:
+        jac0 = constraint_jacobian(constraints_flat, x_safe, args)
+        lam0 = least_squares_multipliers(grad0, jac0, gram_factors(jac0))
+        lam0 = jnp.where(jnp.all(jnp.isfinite(lam0)), lam0, 0.0)
+    else:
+        lam0 = jnp.asarray(multipliers0, dtype)
+    start_defined = jnp.isfinite(f0)
+    z0 = jnp.concatenate([x_safe, lam0, jnp.zeros((m,), dtype)])
+    z, result, aux = inequality_solve(
+        problem,
+        z0,
+        aug,
+        solver.rtol,
+        solver.atol,
+        solver.linear_solver,
+        max_steps,
+        start_ok & start_defined,
+    )
+    result = RESULTS.where(
+        start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, result
+    )
+    tol = aux["tolerance"]
+    infeasible = aux["infeasible"] > tol
+    # A stop anywhere H > 0 is infeasibility, whatever the iteration said; a
+    # "converged" point where the KKT conditions fail is never a success.
+    result = RESULTS.where(
+        (result != RESULTS.successful)
+        & (result != RESULTS.invalid_input)
+        & (result != RESULTS.nonfinite_objective)
+        & infeasible,
+        RESULTS.infeasible_inequalities,
+        result,
+    )
+    result = RESULTS.where(
+        (result == RESULTS.successful) & (aux["violation"] > tol),
+        RESULTS.where(
+            infeasible,
+            RESULTS.infeasible_inequalities,
+            RESULTS.kkt_conditions_violated,
+        ),
+        result,
+    )
+
+    # Second order, on the tangent space of G and the strictly active H.
+    zs = jax.lax.stop_gradient(z)
+    xs = zs[:n]
+    strict, active = aux["strict"], aux["active"]
+    rows = jax.jacrev(ineq_aug)(xs, aug) * strict[:, None].astype(dtype)
+    if k > 0:
+        rows = jnp.concatenate([constraint_jacobian(constraints_flat, xs, args), rows])
+    norms = jnp.linalg.norm(rows, axis=1, keepdims=True)
+    rows = rows / jnp.where(norms > 0, norms, 1.0)
+    eigs, vecs = jnp.linalg.eigh(rows.T @ rows)
+    eps = jnp.finfo(dtype).eps
+    free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
+    project = lambda v: vecs @ (free.astype(dtype) * (vecs.T @ v))
+    isolated = jnp.sum(free) == 0
+
+    def grad_star(x_):
+        z_ = jnp.concatenate([x_, zs[n:]])
+        return problem.stationarity(z_, aug)[0]
+
+    hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
+    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
+    kind = EXTREMUM.where(isolated, EXTREMUM.isolated, _classify(extremes, n, k, dtype))
+    # Weakly active inequalities (H_i = 0 with mu_i = 0): the critical cone is
+    # smaller than the subspace tested, so only a definite answer is conclusive.
+    weakly = jnp.any(active & jnp.invert(strict))
+    kind = EXTREMUM.where(weakly & (kind == EXTREMUM.saddle), EXTREMUM.degenerate, kind)
+    result = _check_sense(result, kind, sense, jnp.array(False))
+
+    value = objective_flat(xs, args)
+    result = RESULTS.where(
+        (result == RESULTS.successful) & jnp.invert(jnp.isfinite(value)),
+        RESULTS.nonfinite_objective,
+        result,
+    )
+    failed = result != RESULTS.successful
+    kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
+    z = nan_tangent_where(z, failed)
+    x, lam, mu = z[:n], z[n : n + k], z[n + k :]
+    # Inactive: mu_i = 0 exactly (the iteration leaves round-off there; its
+    # derivative is zero by `_rewrite` anyway).
+    mu = mu * active.astype(dtype)
+    value = objective_flat(x, args)
+    residual = problem.residual(zs, aug)
+    stats = {
+        "num_steps": aux["num_steps"],
+        "max_steps": max_steps,
+        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
+        "kkt_violation": aux["violation"],
+        "kkt_tolerance": tol,
+        "reduced_hessian_eigenvalues": extremes,
+    }
+    sol = Extremum(
+        x=unravel(x),
+        multipliers=lam,
+        value=value,
+        kind=kind,
+        result=result,
+        stats=stats,
+        inequality_multipliers=mu,
+        active=active,
+    )
+    if throw:
+        sol = result.error_if(sol, failed)
+    return sol

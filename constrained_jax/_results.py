@@ -141,3 +141,25 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "`solve_functional` nearer to the extremal you want (a coarser solve, or a "
         "curve that satisfies the integral constraints)."
     )
+    infeasible_inequalities = (
+        "`extremize` with inequalities: the solve stopped at a point where some "
+        "H_i(x) > 0 (or a bound is violated) and could not reduce the violation: the "
+        "inequalities (with the equality constraints) may have no common solution, "
+        "e.g. `x <= -1` and `x >= 1`, or `lower > upper`. Check that the feasible set "
+        "is not empty; if it is not, start nearer to it."
+    )
+    kkt_conditions_violated = (
+        "`extremize` with inequalities: the iteration stopped, but at that point the "
+        "KKT conditions (stationarity, feasibility, the sign of the multipliers mu, "
+        "complementarity mu_i H_i = 0) do not hold to the tolerance checked "
+        "(`sol.stats['kkt_tolerance']`, relative). The problem may be badly scaled or "
+        "degenerate: rescale x or H, or start elsewhere."
+    )
+    not_an_optimum = (
+        "`extremize` with `sense`: the point found satisfies the first-order (KKT) "
+        "conditions, but its second-order test (`sol.kind`, the Hessian of "
+        "F + lambda.G + mu.H on the tangent space of the equality constraints and the "
+        "strictly active inequalities) contradicts `sense`: a maximum or a saddle "
+        "when minimizing, a minimum or a saddle when maximizing. Start from another "
+        "`x0`."
+    )

@@ -26,7 +26,8 @@ method; `sol.kind` classifies the result by the second-order conditions (the
 Hessian of $F^*$ on the tangent space of the constraints).
 
 This chapter: the lecture's cylinder, with every closed form checked, the envelope
-theorem, the classification of all stationary points; then a larger problem, the
+theorem, the classification of all stationary points, a cap on its height (an
+inequality); then a larger problem, the
 hanging chain of $N$ rigid links, whose multipliers are the tensions in the links.
 """
     ),
@@ -212,6 +213,62 @@ for start in ([0.1, 0.4], [0.1, -0.4], [0.05, 1.9], [0.05, -1.9]):
     assert s.result == cjax.RESULTS.successful
     np.testing.assert_allclose(jax.grad(v)(s.x[1]), 0.0, atol=1e-12)
     assert s.kind == expected[int(np.sign(curvature))]
+"""
+    ),
+    md(
+        r"""
+### Inequalities: a cap on the height
+
+Bounds and inequality constraints $H_i(x) \le 0$ get multipliers $\mu_i$ in the same
+convention, $\nabla F + \lambda \cdot \nabla G + \mu \cdot \nabla H = 0$, with
+complementarity $\mu_i H_i = 0$: an inequality that does not bind has $\mu_i = 0$.
+Since the stationarity formula is the same whether $F$ is minimized or maximized,
+$\mu \ge 0$ for `sense="minimize"` and $\mu \le 0$ for `sense="maximize"`.
+
+Cap the height, $h \le h_{\max}$. Below $h^* = \sqrt{bl/5}$ the cap binds:
+$h = h_{\max}$, $a = (l - h^2/b)/(2\pi)$ from $G$, and stationarity gives
+$\lambda = -ah$ and $\mu = a(2h^2/b - \pi a) < 0$. Above it, the lecture's answer with
+$\mu = 0$. By the envelope theorem, $dV^*/dh_{\max} = -\mu$: the multiplier is the
+volume lost per unit of cap. `scenes.cylinder_volume.solve_capped` passes the cap as
+`upper=(inf, h_max)`; below, a batch of caps under `jax.vmap` (the active set differs
+between its members) and the envelope theorem by `jax.grad`.
+"""
+    ),
+    code(
+        """
+from constrained_jax.scenes import cylinder_volume
+
+
+h_star = np.sqrt(b * l / 5)
+caps = jnp.linspace(0.3, 1.5, 12) * h_star  # no cap exactly at h*
+
+
+def capped_volume(h_max):
+    return cylinder_volume.solve_capped(b, l, h_max).value
+
+
+capped = jax.jit(jax.vmap(lambda c: cylinder_volume.solve_capped(b, l, c)))(caps)
+ref = cylinder_volume.capped_closed_form(b, l, caps)
+mu = capped.inequality_multipliers[:, 1]  # rows: upper bounds on (a, h)
+assert np.all(capped.result == cjax.RESULTS.successful)
+np.testing.assert_allclose(capped.x[:, 1], ref["h"], rtol=1e-10)
+np.testing.assert_allclose(capped.multipliers[:, 0], ref["multiplier"], rtol=1e-10)
+np.testing.assert_allclose(mu, ref["cap_multiplier"], rtol=1e-9, atol=1e-13)
+np.testing.assert_array_equal(capped.active[:, 1], caps < h_star)
+assert np.all(mu <= 0)  # maximizing
+dv = jax.jit(jax.vmap(jax.grad(capped_volume)))(caps)
+np.testing.assert_allclose(dv, -mu, rtol=1e-9, atol=1e-13)  # envelope theorem
+
+fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.5), layout="constrained")
+left.plot(caps / h_star, capped.value, "o-")
+left.axhline(closed["V"], color="k", ls="--", label="no cap")
+left.set_xlabel("$h_{\\\\max} / h^*$")
+left.set_ylabel("$V^*$")
+left.legend()
+right.plot(caps / h_star, -mu, "o", label="$-\\\\mu$")
+right.plot(caps / h_star, dv, "x", label="$dV^*/dh_{\\\\max}$ (jax.grad)")
+right.set_xlabel("$h_{\\\\max} / h^*$")
+right.legend();
 """
     ),
     md(

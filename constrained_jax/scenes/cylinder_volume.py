@@ -11,6 +11,13 @@ With `V* = V + lambda G` the stationarity conditions give `lambda = -a h`,
     lambda = -2 b^(1/2) l^(3/2) / (5^(3/2) pi),   V* = 4 b^(1/2) l^(5/2) / (5^(5/2) pi).
 
 By the envelope theorem `dV*/dl = lambda dG/dl = -lambda`.
+
+**With a cap on the height**, `h <= h_max` (an inequality, `H = h - h_max <= 0`,
+multiplier `mu`; maximizing, so `mu <= 0` in the convention
+`grad V + lambda grad G + mu grad H = 0`): the cap binds when
+`h_max < sqrt(b l / 5)`, and then `h = h_max`, `a = (l - h^2 / b) / (2 pi)` from `G`,
+`lambda = -a h` and `mu = a (2 h^2 / b - pi a)` from stationarity; otherwise the answer
+above with `mu = 0`. The envelope theorem gives `dV*/dh_max = -mu`.
 """
 
 import jax.numpy as jnp
@@ -43,6 +50,24 @@ def closed_form(b, l) -> dict[str, Float[Array, ""]]:
     }
 
 
+def capped_closed_form(b, l, h_max) -> dict[str, Float[Array, ""]]:
+    """The closed form with the cap `h <= h_max`: `a`, `h`, the multipliers `lambda`
+    and `mu` (of the cap), the volume, and whether the cap binds (`active`)."""
+    b, l, h_max = jnp.asarray(b), jnp.asarray(l), jnp.asarray(h_max)
+    free = closed_form(b, l)
+    active = h_max < free["h"]
+    h = jnp.where(active, h_max, free["h"])
+    a = jnp.where(active, (l - h**2 / b) / (2 * jnp.pi), free["a"])
+    return {
+        "a": a,
+        "h": h,
+        "multiplier": -a * h,
+        "cap_multiplier": jnp.where(active, a * (2 * h**2 / b - jnp.pi * a), 0.0),
+        "volume": jnp.pi * a**2 * h,
+        "active": active,
+    }
+
+
 def initial_guess(b, l) -> Float[Array, "2"]:
     """A feasible start: half of the budget `l` on the radius, half on the height."""
     b, l = jnp.asarray(b), jnp.asarray(l)
@@ -59,6 +84,31 @@ def solve(
         initial_guess(b, l),
         args,
         constraints=constraint,
+        solver=solver,
+        throw=throw,
+    )
+
+
+def solve_capped(
+    b=1.0,
+    l=1.0,
+    h_max=0.4,
+    *,
+    solver: AbstractKKTSolver = Newton(),
+    throw: bool = True,
+) -> Extremum:
+    """Maximize the volume for the given `b` and `l` with the height capped,
+    `h <= h_max` (as the bound `upper = (inf, h_max)`; the cap's multiplier is
+    `sol.inequality_multipliers[1]`)."""
+    args = {"b": jnp.asarray(b, float), "l": jnp.asarray(l, float)}
+    upper = jnp.stack([jnp.asarray(jnp.inf), jnp.asarray(h_max, float)])
+    return extremize(
+        volume,
+        initial_guess(b, l),
+        args,
+        constraints=constraint,
+        upper=upper,
+        sense="maximize",
         solver=solver,
         throw=throw,
     )
