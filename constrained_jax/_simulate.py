@@ -1154,6 +1154,11 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
     )
 
 
+# How far below its starting value (or zero) a free group's gap must fall, in units
+# of `eps (1 + |q|)`, for re-contact (see `_event_run`).
+_GAP_MARGIN = 1000.0
+
+
 def _initial_mode(modes, q0, qd0, t0, args, tol):
     """The contact mode at the start, and whether the start is consistent with it:
     a group is attached when its gap and the velocity residual of its rows are zero
@@ -1254,19 +1259,19 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
         attached, free = modes.attached(m), modes.free(m)
         t_start = jnp.minimum(c["t"], t1 - tiny)
         q, qd = c["q"], c["qd"]
-        conditions, directions = [], []
         watch = None
         if attached:
             firsts = [modes.first_rows[m][i] for i in attached]
             signs = [modes.groups[i].sign for i in attached]
 
-            def values(lam):
+            def pushing(lam):
+                # `sign * lambda` of each attached group's first row.
                 return jnp.stack(
                     [s * lam[r] for s, r in zip(signs, firsts, strict=True)]
                 )
 
             def pick(lam):
-                return jnp.min(values(lam))
+                return jnp.min(pushing(lam))
 
             def contact_force(t, y, args, **kwargs):
                 del kwargs
@@ -1276,26 +1281,40 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
             _, lam_start, _ = _solve_accelerations(sys_m, q, qd, t_start, args)
             start = pick(lam_start)
             watch = (contact_force, pick, start)
-            conditions.append(contact_force)
-            directions.append(None)
         # A gap is zero (to the root find) where a phase starts at an event: it
-        # closes when it falls `delta = sqrt(eps) (1 + |q|)` below where it starts
-        # (or below zero), so that round-off is not taken for a collision.
-        delta = jnp.sqrt(eps) * (1 + jnp.max(jnp.abs(q)))
-        for i in free:
-            group = modes.groups[i]
-            offset = jnp.minimum(group.gap(q, t_start, args), 0) - delta
+        # closes when it falls `delta = 1000 eps (1 + |q|)` below where it starts
+        # (or below zero), so that round-off right after a release or an impact is
+        # not taken for a collision. (Smaller than the `sqrt(eps)` of `_release_run`:
+        # each impact is found `delta / speed` late, a delay that adds up over a
+        # series of bounces.)
+        delta = _GAP_MARGIN * eps * (1 + jnp.max(jnp.abs(q)))
+        offsets = [
+            jnp.minimum(modes.groups[i].gap(q, t_start, args), 0) - delta for i in free
+        ]
 
-            def closing(t, y, args, group=group, offset=offset, **kwargs):
-                del kwargs
-                return group.gap(y[0], t, args) - offset
+        def event_values(t, y):
+            """The pushing multipliers of the attached groups, then the gaps (less
+            their offsets) of the free ones: all start >= 0, and the first to fall
+            through zero is the next event."""
+            parts = []
+            if attached:
+                _, lam, _ = _solve_accelerations(sys_m, y[0], y[1], t, args)
+                parts.append(pushing(lam))
+            for i, offset in zip(free, offsets, strict=True):
+                gap = modes.groups[i].gap(y[0], t, args)
+                parts.append(jnp.reshape(gap - offset, (1,)))
+            return jnp.concatenate(parts)
 
-            conditions.append(closing)
-            directions.append(False)
-        conditions.append(_diverged_condition(sys_m, q, t_start, args))
-        directions.append(None)
+        def next_event(t, y, args, **kwargs):
+            # One condition, the smallest value: diffrax keeps only the first
+            # condition (in order) of those that change sign in a step, which need
+            # not be the first in time.
+            del args, kwargs
+            return jnp.min(event_values(t, y))
+
         event = diffrax.Event(
-            tuple(conditions), root_finder=root_finder, direction=tuple(directions)
+            (next_event, _diverged_condition(sys_m, q, t_start, args)),
+            root_finder=root_finder,
         )
 
         def integrate(_):
@@ -1310,10 +1329,7 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
                 adaptive=adaptive,
             )
             stopped = one.result == diffrax.RESULTS.event_occurred
-            masks = [stopped & jnp.asarray(x) for x in one.event_mask]
-            by_release = masks[0] if attached else jnp.array(False)
-            by_gap = masks[1 if attached else 0 : -1]
-            diverged = masks[-1]
+            diverged = stopped & one.event_mask[1]
             missed = (
                 jnp.array(False)
                 if adaptive or not attached
@@ -1326,13 +1342,10 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
                     missed, RESULTS.release_missed, RESULTS.promote(one.result)
                 ),
             )
-            # Which event: 0 none, 1 release, 2 + j the impact of free[j] (the first
-            # one if several coincide).
-            kind = jnp.array(0)
-            for j in reversed(range(len(by_gap))):
-                kind = jnp.where(by_gap[j], 2 + j, kind)
-            kind = jnp.where(by_release, 1, kind)
-            kind = jnp.where(diverged, 0, kind)
+            # Which event: 0 none, else 1 + the index of the smallest value (a
+            # release of attached[j], or an impact of free[j - len(attached)]).
+            which = jnp.argmin(event_values(one.t_end, (one.q_end, one.qd_end)))
+            kind = jnp.where(stopped & jnp.invert(diverged), 1 + which, 0)
             in_phase = (ts >= c["t"]) & (ts <= one.t_end)
             saved = (
                 jnp.where(in_phase[:, None], one.saved[0], c["q_saved"]),
@@ -1345,9 +1358,10 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
             return one.t_end, one.q_end, one.qd_end, kind, result, saved, stats
 
         def released_at_start(_):
-            # A multiplier already pulls: release at once, no integration.
+            # A multiplier already pulls: release it at once, no integration.
             saved = (c["q_saved"], c["qd_saved"], c["mode_saved"])
-            return t_start, q, qd, jnp.array(1), RESULTS.successful, saved, c["stats"]
+            kind = 1 + jnp.argmin(pushing(lam_start))
+            return t_start, q, qd, kind, RESULTS.successful, saved, c["stats"]
 
         if attached:
             outcome = jax.lax.cond(start < 0, released_at_start, integrate, None)
@@ -1358,12 +1372,17 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
         def no_event():
             return q_end, qd_end, jnp.asarray(m), jnp.array(-1), False, False, 0.0, 0.0
 
-        def release():
-            _, lam, _ = _solve_accelerations(sys_m, q_end, qd_end, t_end, args)
-            which = jnp.argmin(values(lam))
-            group = jnp.asarray(attached)[which]
-            bit = jnp.asarray([2**i for i in attached])[which]
-            return q_end, qd_end, m - bit, group, False, False, 0.0, 0.0
+        def release(i):
+            return (
+                q_end,
+                qd_end,
+                jnp.asarray(m - 2**i),
+                jnp.asarray(i),
+                False,
+                False,
+                0.0,
+                0.0,
+            )
 
         def hit(i):
             group = modes.groups[i]
@@ -1399,10 +1418,7 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
             )
 
         branches = [no_event]
-        if attached:
-            branches.append(release)
-        else:
-            branches.append(no_event)
+        branches += [functools.partial(release, i) for i in attached]
         branches += [functools.partial(hit, i) for i in free]
 
         def as_arrays(out):
@@ -1441,7 +1457,7 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
             q=jnp.where(record, q2, q_end),
             qd=jnp.where(record, qd2, qd_end),
             mode=jnp.where(record, mode2, m),
-            count=c["count"] + record,
+            count=c["count"] + record.astype(c["count"].dtype),
             done=jnp.invert(record) | (result != RESULTS.successful),
             result=result,
             q_saved=saved[0],
