@@ -24,11 +24,14 @@ TS = jnp.linspace(0.0, T1, 25)
 # a restitution).
 CASES = [(0.7, 0.0), (0.8, 0.0), (0.9, 0.0), (0.5, 0.3), (0.0, 0.0), (0.5, 0.0)]
 INVALID = [(1.5, 0.0), (float("nan"), 0.0)]
+# (e, rest_speed, h): starting at rest on the floor (attached from the start), and
+# below it (inconsistent).
+STARTS = [(0.5, 0.0, 0.0), (0.5, 0.0, -0.01)]
 
 
-def _drop(e, rest_speed):
+def _drop(e, rest_speed, h=H):
     args = ball.default_args(e=e, rest_speed=rest_speed)
-    q0, qd0 = ball.state(H, U)
+    q0, qd0 = ball.state(h, U)
     return cjax.simulate(
         ball.system(),
         (0.0, T1),
@@ -47,8 +50,9 @@ _drops = jax.jit(jax.vmap(_drop))
 
 @pytest.fixture(scope="module")
 def drops():
-    e, rest = (jnp.asarray(x) for x in zip(*CASES, *INVALID, strict=True))
-    return e, rest, _drops(e, rest)
+    cases = [(e, r, H) for e, r in CASES + INVALID] + STARTS
+    e, rest, h = (jnp.asarray(x) for x in zip(*cases, strict=True))
+    return e, rest, _drops(e, rest, h)
 
 
 def _closed_form(e, rest_speed, g=9.81):
@@ -174,8 +178,22 @@ def test_restitution_outside_the_unit_interval_is_reported(drops):
     """A traced e = 1.5 is refused at run time; a NaN e is invalid input (`args`
     must be finite): never `successful`."""
     _, _, traj = drops
-    assert traj.result._value[-2] == cjax.RESULTS.invalid_restitution._value
-    assert traj.result._value[-1] == cjax.RESULTS.invalid_input._value
+    i = len(CASES)
+    assert traj.result._value[i] == cjax.RESULTS.invalid_restitution._value
+    assert traj.result._value[i + 1] == cjax.RESULTS.invalid_input._value
+
+
+def test_initial_contact_mode(drops):
+    """At rest on the floor the ball starts attached and stays (no event, y = 0,
+    the floor pushing with m g); below the floor the start is inconsistent."""
+    _, _, traj = drops
+    i = len(CASES) + len(INVALID)
+    assert traj.result._value[i] == cjax.RESULTS.successful._value
+    assert int(traj.events.count[i]) == 0 and int(traj.events.mode[i]) == 1
+    np.testing.assert_allclose(traj.q[i, :, 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(traj.q[i, :, 0], U * TS, rtol=1e-10)
+    np.testing.assert_allclose(traj.multipliers[i, :, 0], 9.81, rtol=1e-12)
+    assert traj.result._value[i + 1] == cjax.RESULTS.inconsistent_initial_state._value
 
 
 def _third_impact(e):
