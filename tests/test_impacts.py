@@ -11,7 +11,7 @@ import pytest
 import scipy.optimize
 
 import constrained_jax as cjax
-from constrained_jax.scenes import bouncing_ball as ball
+from constrained_jax.scenes import bouncing_ball as ball, two_cylinders as cyl
 
 
 TIGHT = diffrax.PIDController(rtol=1e-10, atol=1e-10)
@@ -365,3 +365,71 @@ def test_careless_inputs():
             args,
             max_events=4,
         )
+
+
+@pytest.mark.slow  # (four contact modes to compile: about 20 s)
+def test_two_cylinders_detach_and_bounce_on_a_floor():
+    """The lecture's two cylinders, with the contact group (contact and no slip, two
+    Pfaffian rows) re-made inelastically and a floor at y = y_f below: released at
+    the closed-form detachment time, the rolling cylinder flies as a projectile and
+    hits the floor where y* + vy* s - g s^2 / 2 = y_f; the impulse, in the polar
+    coordinates (r, theta1), is vertical: vx and the spin are unchanged, vy is
+    reversed and scaled by e."""
+    y_floor, e = -1.0, 0.6
+
+    def floor_height(q, t, args):
+        return q[0] * jnp.cos(q[1]) - y_floor
+
+    contact = cjax.Unilateral(
+        cjax.Pfaffian(cyl.pfaffian_rows),
+        gap=lambda q, t, args: q[0] - (args["R"] + args["a"]),
+        restitution=0.0,
+    )
+    floor = cjax.Unilateral(
+        cjax.Holonomic(floor_height), gap=floor_height, restitution=e
+    )
+    system = cjax.LagrangianSystem(cyl.lagrangian, (contact, floor))
+    args = cyl.default_args()
+    theta0 = jnp.asarray(0.3)
+    q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), args)
+    traj = cjax.simulate(
+        system,
+        (0.0, 2.0),
+        q0,
+        qd0,
+        args,
+        stepsize_controller=TIGHT,
+        saveat=cjax.SaveAt(t1=True),
+        max_events=2,
+        throw=False,
+    )
+    ev = traj.events
+    assert list(ev.group) == [0, 1] and list(ev.impact) == [False, True]
+    np.testing.assert_allclose(ev.time[0], cyl.detachment_time(theta0, args), rtol=1e-8)
+    np.testing.assert_allclose(
+        ev.q[0, 1], cyl.detachment_angle(theta0, args), rtol=1e-9
+    )
+
+    def cartesian(q, qd):
+        r, th, rd, thd = q[0], q[1], qd[0], qd[1]
+        return (
+            r * np.sin(th),
+            r * np.cos(th),
+            rd * np.sin(th) + r * thd * np.cos(th),
+            rd * np.cos(th) - r * thd * np.sin(th),
+        )
+
+    x_r, y_r, vx_r, vy_r = cartesian(np.asarray(ev.q[0]), np.asarray(ev.qd[0]))
+    g = 9.81
+    s = (vy_r + np.sqrt(vy_r**2 + 2 * g * (y_r - y_floor))) / g
+    np.testing.assert_allclose(ev.time[1] - ev.time[0], s, rtol=1e-8)
+    x, y, vx, vy = cartesian(np.asarray(ev.q[1]), np.asarray(ev.qd[1]))
+    np.testing.assert_allclose([x, y], [x_r + vx_r * s, y_floor], rtol=1e-8)
+    np.testing.assert_allclose(vx, vx_r, rtol=1e-8)
+    np.testing.assert_allclose(vy, -e * (vy_r - g * s), rtol=1e-8)
+    np.testing.assert_allclose(ev.qd[1, 2], ev.qd[0, 2], rtol=1e-10)
+    # The next floor impact, 2 vy / g later, would be a third event: the run is
+    # successful only if that falls after t1.
+    beyond = float(ev.time[1]) + 2 * vy / g > 2.0
+    expected = cjax.RESULTS.successful if beyond else cjax.RESULTS.max_events_reached
+    assert traj.result == expected
