@@ -17,6 +17,7 @@ from ._constraints import (
     Pfaffian as Pfaffian,
     Unilateral as Unilateral,
 )
+from ._contact import Events as Events
 from ._discretization import (
     AbstractDiscretization as AbstractDiscretization,
     Chebyshev as Chebyshev,

@@ -83,6 +83,20 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "located. Reduce `dt0`, or use an adaptive step-size controller (e.g. "
         "`diffrax.PIDController`), which refines such steps."
     )
+    max_events_reached = (
+        "The run used its whole budget of contact events (`simulate(..., "
+        "max_events=N)`: releases and impacts of `cjax.Unilateral` constraints) "
+        "before `t1`, and stopped there; later save times are inf. Increase "
+        "`max_events`. If the events accumulate in finite time (Zeno: a ball with "
+        "restitution e < 1 bounces infinitely often before it comes to rest), give "
+        "the `Unilateral` a `rest_speed`: impacts slower than it are taken as "
+        "inelastic and the contact is re-made (resting contact)."
+    )
+    invalid_restitution = (
+        "A `cjax.Unilateral`'s `restitution(args)` is not in [0, 1] (or is NaN), or "
+        "its `rest_speed(args)` is negative or NaN. Newton's coefficient of "
+        "restitution e must satisfy 0 <= e <= 1 (e > 1 would create energy)."
+    )
     fit_diverged = (
         "The fit ended with a higher loss than it started from: the optimizer "
         "diverged (its steps are too large for the curvature of the loss; plain "

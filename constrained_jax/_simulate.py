@@ -21,7 +21,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._adjoint import default_adjoint
-from ._constraints import Unilateral
+from ._contact import build_modes, Events, find_unilaterals, impact
 from ._misc import (
     all_finite,
     as_traced_args,
@@ -85,6 +85,10 @@ class Trajectory(eqx.Module):
         `None` otherwise. In the free phase the released rows of `multipliers` are
         `0`, and `violation` reports the released constraints' residuals as they are
         (a gap, not an error).
+    - `events`: for a run with `max_events` (contacts that come and go), the
+        [`constrained_jax.Events`][]: every release and impact in order; `None`
+        otherwise (then `release` is `None`). The rows of `multipliers` of a group
+        that is free at a saved time are `0`.
     """
 
     ts: Float[Array, " T"]
@@ -97,6 +101,7 @@ class Trajectory(eqx.Module):
     result: RESULTS
     stats: dict
     release: "Release | None" = None
+    events: Events | None = None
 
 
 def consistent_initial_state(
@@ -168,6 +173,7 @@ def simulate(
     adjoint: diffrax.AbstractAdjoint | None = None,
     consistency_tol: float | None = None,
     progress_meter: diffrax.AbstractProgressMeter = diffrax.NoProgressMeter(),
+    max_events: int | None = None,
     throw: bool = True,
 ) -> Trajectory:
     """Integrate the constrained equations of motion from `(q0, qd0)` at `t_span[0]`.
@@ -209,6 +215,20 @@ def simulate(
         constraint releases; refused by the variational integrator, which is not a
         diffrax loop). For many runs use [`constrained_jax.sweep`][], which has its
         own bar over chunks.
+    - `max_events`: contacts that come and go (see
+        [`constrained_jax.Unilateral`][]'s `restitution`). `None` (default): at most
+        one `Unilateral`, released once, the run stopping at re-contact. An integer
+        `N >= 1`: any number of `Unilateral` groups, each with a `gap` and a
+        `restitution`, each released (its multiplier lets go) and re-made (its gap
+        closes: an impact) independently, up to `N` events in all, in one compiled
+        call; the run is a sequence of phases, one `diffrax.diffeqsolve` each, in a
+        contact mode (which groups are attached). A group starts attached when its
+        gap and the velocity residual of its rows are zero (to `consistency_tol`),
+        else free; only the bilateral constraints and the attached groups must hold
+        at the start. The events are in `traj.events`
+        ([`constrained_jax.Events`][]). A run that needs more events stops with
+        `RESULTS.max_events_reached` (later save times `inf`). Each phase has its
+        own `max_steps`.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:** a [`constrained_jax.Trajectory`][].
@@ -254,9 +274,10 @@ def simulate(
     driver = _driver(solver)
     driver.check(system, stabilization, dt0, progress_meter)
     check_max_steps(max_steps)
+    _check_max_events(system, max_events)
     args = as_traced_args(args)
     t0, t1 = t_span
-    _check_time_grid(t0, t1, saveat.ts, dt0, _find_unilateral(system) is not None)
+    _check_time_grid(t0, t1, saveat.ts, dt0, bool(find_unilaterals(system)))
     # Floating inputs keep their precision (float32 runs in float32); others become
     # the default float.
     q0 = inexact_asarray(q0)
@@ -282,8 +303,39 @@ def simulate(
         adjoint,
         consistency_tol,
         progress_meter,
+        max_events,
         throw,
     )
+
+
+def _check_max_events(system, max_events):
+    """Refuse, at trace time, a `max_events` that does not fit the system."""
+    groups = [c for _, c in find_unilaterals(system)]
+    if max_events is None:
+        if any(c.restitution is not None for c in groups):
+            raise ValueError(
+                "A `cjax.Unilateral` with a `restitution` makes contacts that come "
+                "and go: pass the budget of events, e.g. "
+                "`simulate(..., max_events=32)`."
+            )
+        return
+    if isinstance(max_events, bool) or not isinstance(max_events, (int, np.integer)):
+        raise ValueError(
+            f"`max_events` must be a positive integer or None; got {max_events!r}."
+        )
+    if max_events < 1:
+        raise ValueError(f"`max_events` must be at least 1; got {max_events}.")
+    if not groups:
+        raise ValueError(
+            "`max_events` counts the events of `cjax.Unilateral` constraints, and the "
+            "system has none: leave it to `None`."
+        )
+    if any(c.restitution is None for c in groups):
+        raise ValueError(
+            "With `max_events`, every `cjax.Unilateral` needs a `gap` and a "
+            "`restitution` (the impact law at re-contact; `restitution=0.0` re-makes "
+            "the contact)."
+        )
 
 
 def _concrete(x):
@@ -400,14 +452,14 @@ class Release(eqx.Module):
 
 
 def _find_unilateral(system):
-    groups = [
-        (i, c) for i, c in enumerate(system.constraints) if isinstance(c, Unilateral)
-    ]
+    groups = find_unilaterals(system)
     if len(groups) > 1:
         raise ValueError(
-            "`simulate` handles one `cjax.Unilateral` constraint per system (release "
-            "events of several ones, in any order, are not implemented). Group the "
-            "constraints that release together into one `Unilateral`."
+            "Without `max_events`, `simulate` handles one `cjax.Unilateral` "
+            "constraint per system. Group the constraints that release together into "
+            "one `Unilateral`, or give each group a `restitution` and pass "
+            "`simulate(..., max_events=N)` for contacts released and re-made "
+            "independently."
         )
     return groups[0] if groups else None
 
@@ -806,7 +858,28 @@ class _Run(eqx.Module):
     result: RESULTS
     stats: dict
     release: Release | None = None
-    phases: _ReleasePhases | None = None
+    phases: "_ReleasePhases | _ModePhases | None" = None
+    events: Events | None = None
+
+
+class _ModePhases(eqx.Module):
+    """Where the save times of a run with `max_events` fall: `mode[i]` is the contact
+    mode at save time `i` (`-1` past the end of the run: `inf`), `systems[m]` the
+    system of mode `m` and `keep_rows[m]` the rows of the full system it keeps."""
+
+    mode: Int[Array, " T"]
+    end_mode: Int[Array, ""]
+    systems: tuple
+    keep_rows: tuple
+
+    def select(self, per_mode, mode=None):
+        """`per_mode[m]` where the mode is `m` (stacked along the first axis)."""
+        mode = self.mode if mode is None else mode
+        out = per_mode[0]
+        for m in range(1, len(per_mode)):
+            shape = mode.shape + (1,) * (per_mode[m].ndim - mode.ndim)
+            out = jnp.where((mode == m).reshape(shape), per_mode[m], out)
+        return out
 
 
 class _AbstractDriver(eqx.Module):
@@ -834,14 +907,32 @@ class _DiffraxDriver(_AbstractDriver):
     def check(self, system, stabilization, dt0, progress_meter):
         pass  # Every stabilization, release events and progress meters.
 
-    def run(self, system, t0, t1, q0, qd0, args, ts, *, ends=None, **options):
+    def run(
+        self,
+        system,
+        t0,
+        t1,
+        q0,
+        qd0,
+        args,
+        ts,
+        *,
+        ends=None,
+        max_events=None,
+        modes=None,
+        mode0=None,
+        **options,
+    ):
         phase = functools.partial(_run_phase, args=args, solver=self.solver, **options)
+        adaptive = isinstance(
+            options["stepsize_controller"], diffrax.AbstractAdaptiveStepSizeController
+        )
+        if max_events is not None:
+            return _event_run(
+                phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adaptive
+            )
         found = _find_unilateral(system)
         if found is not None:
-            adaptive = isinstance(
-                options["stepsize_controller"],
-                diffrax.AbstractAdaptiveStepSizeController,
-            )
             return _release_run(
                 phase, system, found, t0, t1, q0, qd0, args, ts, adaptive
             )
@@ -890,7 +981,7 @@ class _VariationalDriver(_AbstractDriver):
                 "A variational integrator enforces the constraints itself at every "
                 "step: use `stabilization=cjax.Unstabilized()` (the default)."
             )
-        if _find_unilateral(system) is not None:
+        if find_unilaterals(system):
             raise ValueError(
                 "Release events (`cjax.Unilateral`) are not implemented for the "
                 "variational integrator; use a diffrax solver."
@@ -1063,6 +1154,371 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
     )
 
 
+# How far below its starting value (or zero) a free group's gap must fall, in units
+# of `eps (1 + |q|)`, for re-contact (see `_event_run`).
+_GAP_MARGIN = 1000.0
+
+
+def _initial_mode(modes, q0, qd0, t0, args, tol):
+    """The contact mode at the start, and whether the start is consistent with it:
+    a group is attached when its gap and the velocity residual of its rows are zero
+    (to `tol`), free otherwise; no gap may be negative (penetration) beyond `tol`,
+    and the rows of the bilateral constraints and of the attached groups must hold
+    (positions and velocities, to `tol`)."""
+    scale_q = tol * (1 + jnp.max(jnp.abs(q0)))
+    scale_qd = tol * (1 + jnp.max(jnp.abs(qd0)))
+    mode = jnp.array(0)
+    ok = jnp.array(True)
+    for i, group in enumerate(modes.groups):
+        gap = group.gap(q0, t0, args)
+        velocity = group.velocity_residual(q0, qd0, t0, args)
+        attached = (jnp.abs(gap) <= scale_q) & jnp.all(jnp.abs(velocity) <= scale_qd)
+        mode = mode + jnp.where(attached, 2**i, 0)
+        ok = ok & (gap >= -scale_q)
+
+    def residuals(m):
+        sys_m = modes.systems[m]
+        position = sys_m.holonomic_residual(q0, t0, args)
+        velocity = sys_m.velocity_residual(q0, qd0, t0, args)
+        return jnp.all(jnp.abs(position) <= scale_q) & jnp.all(
+            jnp.abs(velocity) <= scale_qd
+        )
+
+    consistent = jax.lax.switch(
+        mode, [functools.partial(residuals, m) for m in range(modes.num_modes)]
+    )
+    return mode, ok & consistent
+
+
+def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adaptive):
+    """Contacts that come and go: a sequence of phases, each one diffrax solve in a
+    contact mode (`constrained_jax._contact`), ended by an event: a release (the
+    smallest pushing multiplier of the attached groups falls through zero; that
+    group is dropped) or an impact (a free group's gap falls through zero: the
+    velocities jump, see `constrained_jax._contact.impact`, and with `e = 0` the
+    group is attached again).
+
+    `lax.scan` over `max_events + 1` phases (reverse-mode autodiff goes through it,
+    unlike a `while_loop`); each step is a `lax.switch` on the mode, with one more
+    branch, once the run is over, that passes the state through. Under `jax.jit`
+    alone only the taken branch runs; under `jax.vmap` every branch does."""
+    dtype = q0.dtype
+    n = q0.shape[0]
+    num_modes = modes.num_modes
+    eps = jnp.finfo(dtype).eps
+    tiny = 64 * eps * (1 + jnp.abs(t1))
+    root_tol = float_tolerance(1e-12, 100.0, dtype)
+    root_finder = _Illinois(rtol=root_tol, atol=root_tol)
+    restitution, rest_speed = [], []
+    for group in modes.groups:
+        e = jnp.asarray(group.restitution_value(args), dtype)
+        v = jnp.asarray(group.rest_speed_value(args), dtype)
+        restitution.append(e)
+        rest_speed.append(v)
+    valid = jnp.all(
+        jnp.stack(
+            [
+                (e >= 0) & (e <= 1) & (v >= 0)
+                for e, v in zip(restitution, rest_speed, strict=True)
+            ]
+        )
+    )
+    # Invalid values run as inelastic impacts (the status says why).
+    restitution = [jnp.where(valid, e, 0.0) for e in restitution]
+    rest_speed = [jnp.where(valid, v, 0.0) for v in rest_speed]
+    num_ts = ts.shape[0]
+    inf = jnp.asarray(jnp.inf, dtype)
+    zero_stats = {
+        k: jnp.array(0)
+        for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")
+    }
+    carry = {
+        "t": t0,
+        "q": q0,
+        "qd": qd0,
+        "mode": jnp.asarray(mode0, int),
+        "count": jnp.array(0),
+        "done": jnp.array(False),
+        "result": RESULTS.successful,
+        "q_saved": jnp.full((num_ts, n), inf),
+        "qd_saved": jnp.full((num_ts, n), inf),
+        "mode_saved": jnp.full((num_ts,), -1),
+        "stats": zero_stats,
+        "time": jnp.full((max_events,), inf),
+        "group": jnp.full((max_events,), -1),
+        "impact": jnp.zeros((max_events,), bool),
+        "attached": jnp.zeros((max_events,), bool),
+        "speed": jnp.zeros((max_events,), dtype),
+        "impulse": jnp.zeros((max_events,), dtype),
+        "q_event": jnp.full((max_events, n), inf),
+        "qd_event": jnp.full((max_events, n), inf),
+    }
+
+    def mode_step(m, c):
+        sys_m = modes.systems[m]
+        attached, free = modes.attached(m), modes.free(m)
+        t_start = jnp.minimum(c["t"], t1 - tiny)
+        q, qd = c["q"], c["qd"]
+        watch = None
+        if attached:
+            firsts = [modes.first_rows[m][i] for i in attached]
+            signs = [modes.groups[i].sign for i in attached]
+
+            def pushing(lam):
+                # `sign * lambda` of each attached group's first row.
+                return jnp.stack(
+                    [s * lam[r] for s, r in zip(signs, firsts, strict=True)]
+                )
+
+            def pick(lam):
+                return jnp.min(pushing(lam))
+
+            def contact_force(t, y, args, **kwargs):
+                del kwargs
+                _, lam, _ = _solve_accelerations(sys_m, y[0], y[1], t, args)
+                return pick(lam)
+
+            _, lam_start, _ = _solve_accelerations(sys_m, q, qd, t_start, args)
+            start = pick(lam_start)
+            watch = (contact_force, pick, start)
+        # A gap is zero (to the root find) where a phase starts at an event: it
+        # closes when it falls `delta = 1000 eps (1 + |q|)` below where it starts
+        # (or below zero), so that round-off right after a release or an impact is
+        # not taken for a collision. (Smaller than the `sqrt(eps)` of `_release_run`:
+        # each impact is found `delta / speed` late, a delay that adds up over a
+        # series of bounces.)
+        delta = _GAP_MARGIN * eps * (1 + jnp.max(jnp.abs(q)))
+        offsets = [
+            jnp.minimum(modes.groups[i].gap(q, t_start, args), 0) - delta for i in free
+        ]
+
+        def event_values(t, y):
+            """The pushing multipliers of the attached groups, then the gaps (less
+            their offsets) of the free ones: all start >= 0, and the first to fall
+            through zero is the next event."""
+            parts = []
+            if attached:
+                _, lam, _ = _solve_accelerations(sys_m, y[0], y[1], t, args)
+                parts.append(pushing(lam))
+            for i, offset in zip(free, offsets, strict=True):
+                gap = modes.groups[i].gap(y[0], t, args)
+                parts.append(jnp.reshape(gap - offset, (1,)))
+            return jnp.concatenate(parts)
+
+        def next_event(t, y, args, **kwargs):
+            # One condition, the smallest value: diffrax keeps only the first
+            # condition (in order) of those that change sign in a step, which need
+            # not be the first in time.
+            del args, kwargs
+            return jnp.min(event_values(t, y))
+
+        event = diffrax.Event(
+            (next_event, _diverged_condition(sys_m, q, t_start, args)),
+            root_finder=root_finder,
+        )
+
+        def integrate(_):
+            one = phase(
+                sys_m,
+                t_start,
+                t1,
+                (q, qd),
+                jnp.clip(ts, t_start, t1),
+                event,
+                watch,
+                adaptive=adaptive,
+            )
+            stopped = one.result == diffrax.RESULTS.event_occurred
+            diverged = stopped & one.event_mask[1]
+            missed = (
+                jnp.array(False)
+                if adaptive or not attached
+                else one.result == diffrax.RESULTS.dt_min_reached
+            )
+            result = RESULTS.where(
+                stopped,
+                RESULTS.where(diverged, RESULTS.diverged, RESULTS.successful),
+                RESULTS.where(
+                    missed, RESULTS.release_missed, RESULTS.promote(one.result)
+                ),
+            )
+            # Which event: 0 none, else 1 + the index of the smallest value (a
+            # release of attached[j], or an impact of free[j - len(attached)]).
+            which = jnp.argmin(event_values(one.t_end, (one.q_end, one.qd_end)))
+            kind = jnp.where(stopped & jnp.invert(diverged), 1 + which, 0)
+            in_phase = (ts >= c["t"]) & (ts <= one.t_end)
+            saved = (
+                jnp.where(in_phase[:, None], one.saved[0], c["q_saved"]),
+                jnp.where(in_phase[:, None], one.saved[1], c["qd_saved"]),
+                jnp.where(in_phase, m, c["mode_saved"]),
+            )
+            stats = {
+                k: v + jnp.asarray(one.stats[k], v.dtype) for k, v in c["stats"].items()
+            }
+            return one.t_end, one.q_end, one.qd_end, kind, result, saved, stats
+
+        def released_at_start(_):
+            # A multiplier already pulls: release it at once, no integration.
+            saved = (c["q_saved"], c["qd_saved"], c["mode_saved"])
+            kind = 1 + jnp.argmin(pushing(lam_start))
+            return t_start, q, qd, kind, RESULTS.successful, saved, c["stats"]
+
+        if attached:
+            outcome = jax.lax.cond(start < 0, released_at_start, integrate, None)
+        else:
+            outcome = integrate(None)
+        t_end, q_end, qd_end, kind, result, saved, stats = outcome
+
+        def no_event():
+            return q_end, qd_end, jnp.asarray(m), jnp.array(-1), False, False, 0.0, 0.0
+
+        def release(i):
+            return (
+                q_end,
+                qd_end,
+                jnp.asarray(m - 2**i),
+                jnp.asarray(i),
+                False,
+                False,
+                0.0,
+                0.0,
+            )
+
+        def hit(i):
+            group = modes.groups[i]
+            m2 = m + 2**i
+            gap_rate = jax.jvp(
+                lambda q_, t_: group.gap(q_, t_, args),
+                (q_end, t_end),
+                (qd_end, jnp.ones_like(t_end)),
+            )[1]
+            speed = -gap_rate
+            e = jnp.where(speed < rest_speed[i], 0.0, restitution[i])
+            q2, qd2, lam, singular = impact(
+                modes.systems[m2],
+                modes.group_rows[m2][i],
+                e,
+                q_end,
+                qd_end,
+                t_end,
+                args,
+            )
+            attach = e == 0
+            impulse = lam[modes.first_rows[m2][i]]
+            q2 = jnp.where(singular, jnp.nan, q2)
+            return (
+                q2,
+                qd2,
+                jnp.where(attach, m2, m),
+                jnp.asarray(i),
+                True,
+                attach,
+                speed,
+                impulse,
+            )
+
+        branches = [no_event]
+        branches += [functools.partial(release, i) for i in attached]
+        branches += [functools.partial(hit, i) for i in free]
+
+        def as_arrays(out):
+            q2, qd2, mode, group, is_impact, attach, speed, impulse = out
+            return (
+                q2,
+                qd2,
+                jnp.asarray(mode, int),
+                jnp.asarray(group, int),
+                jnp.asarray(is_impact),
+                jnp.asarray(attach),
+                jnp.asarray(speed, dtype),
+                jnp.asarray(impulse, dtype),
+            )
+
+        q2, qd2, mode2, group, is_impact, attach, speed, impulse = jax.lax.switch(
+            kind, [lambda f=f: as_arrays(f()) for f in branches]
+        )
+        happened = kind > 0
+        over_budget = happened & (c["count"] >= max_events)
+        record = happened & jnp.invert(over_budget)
+        singular = jnp.invert(all_finite((q2, qd2)))
+        result = RESULTS.where(
+            over_budget,
+            RESULTS.max_events_reached,
+            RESULTS.where(record & singular, RESULTS.singular_dynamics, result),
+        )
+        at = jnp.minimum(c["count"], max_events - 1)
+
+        def put(array, value):
+            return jnp.where(record, array.at[at].set(value), array)
+
+        new = dict(c)
+        new.update(
+            t=t_end,
+            q=jnp.where(record, q2, q_end),
+            qd=jnp.where(record, qd2, qd_end),
+            mode=jnp.where(record, mode2, m),
+            count=c["count"] + record.astype(c["count"].dtype),
+            done=jnp.invert(record) | (result != RESULTS.successful),
+            result=result,
+            q_saved=saved[0],
+            qd_saved=saved[1],
+            mode_saved=saved[2],
+            stats=stats,
+            time=put(c["time"], t_end),
+            group=put(c["group"], group),
+            impact=put(c["impact"], is_impact),
+            attached=put(c["attached"], attach),
+            speed=put(c["speed"], speed),
+            impulse=put(c["impulse"], impulse),
+            q_event=put(c["q_event"], q2),
+            qd_event=put(c["qd_event"], qd2),
+        )
+        return new
+
+    branches = [functools.partial(mode_step, m) for m in range(num_modes)]
+    branches.append(lambda c: c)
+
+    def body(c, _):
+        index = jnp.where(c["done"], num_modes, c["mode"])
+        return jax.lax.switch(index, branches, c), None
+
+    c, _ = jax.lax.scan(body, carry, None, length=max_events + 1)
+    result = RESULTS.where(valid, c["result"], RESULTS.invalid_restitution)
+    # (`done` is false only if every iteration recorded an event: the budget is
+    # spent and the run has not reached `t1`.)
+    result = RESULTS.where(
+        c["done"] | (result != RESULTS.successful), result, RESULTS.max_events_reached
+    )
+    events = Events(
+        count=c["count"],
+        time=c["time"],
+        group=c["group"],
+        impact=c["impact"],
+        attached=c["attached"],
+        speed=c["speed"],
+        impulse=c["impulse"],
+        q=c["q_event"],
+        qd=c["qd_event"],
+        mode=c["mode"],
+    )
+    return _Run(
+        q=c["q_saved"],
+        qd=c["qd_saved"],
+        t_end=c["t"],
+        q_end=c["q"],
+        qd_end=c["qd"],
+        result=result,
+        stats=c["stats"],
+        phases=_ModePhases(
+            mode=c["mode_saved"],
+            end_mode=c["mode"],
+            systems=modes.systems,
+            keep_rows=tuple(jnp.asarray(k, int) for k in modes.keep_rows),
+        ),
+        events=events,
+    )
+
+
 @eqx.filter_jit
 def _simulate(
     system,
@@ -1080,15 +1536,21 @@ def _simulate(
     adjoint,
     consistency_tol,
     progress_meter,
+    max_events,
     throw,
 ):
     system.check(q0, qd0, t0, args)
     start_ok = all_finite((q0, qd0, args, t0, t1))
-    position = system.holonomic_residual(q0, t0, args)
-    velocity = system.velocity_residual(q0, qd0, t0, args)
-    consistent = jnp.all(
-        jnp.abs(position) <= consistency_tol * (1 + jnp.max(jnp.abs(q0)))
-    ) & jnp.all(jnp.abs(velocity) <= consistency_tol * (1 + jnp.max(jnp.abs(qd0))))
+    modes = mode0 = None
+    if max_events is None:
+        position = system.holonomic_residual(q0, t0, args)
+        velocity = system.velocity_residual(q0, qd0, t0, args)
+        consistent = jnp.all(
+            jnp.abs(position) <= consistency_tol * (1 + jnp.max(jnp.abs(q0)))
+        ) & jnp.all(jnp.abs(velocity) <= consistency_tol * (1 + jnp.max(jnp.abs(qd0))))
+    else:
+        modes = build_modes(system, q0.shape[0], args, q0.dtype)
+        mode0, consistent = _initial_mode(modes, q0, qd0, t0, args, consistency_tol)
 
     # The user's save times, as one array (diffrax's own t0/t1 flags are folded in).
     parts = []
@@ -1099,7 +1561,7 @@ def _simulate(
     if saveat.t1:
         parts.append(t1[None])
     ts = jnp.concatenate(parts)
-    grid_ok = _time_grid_ok(t0, t1, ts, _find_unilateral(system) is not None)
+    grid_ok = _time_grid_ok(t0, t1, ts, bool(find_unilaterals(system)))
     # (diffrax raises on such save times whatever `throw` says: run on a valid grid,
     # and report `invalid_time_grid`.)
     ts = jnp.where(grid_ok, ts, t0)
@@ -1119,12 +1581,25 @@ def _simulate(
         adjoint=adjoint,
         progress_meter=progress_meter,
         ends=(saveat.t0, saveat.t1) if saveat.ts is None else None,
+        **(
+            {}
+            if max_events is None
+            else dict(max_events=max_events, modes=modes, mode0=mode0)
+        ),
     )
     phases = run.phases
+    by_mode = isinstance(phases, _ModePhases)
     # Saved states between steps are interpolated: the stabilization may correct them
     # too (each phase with its own system; states after re-contact stay inf).
     if phases is None:
         q, qd = stabilization.project_saved(system, run.q, run.qd, ts, args)
+    elif by_mode:
+        projected = [
+            stabilization.project_saved(sys_m, run.q, run.qd, ts, args)
+            for sys_m in phases.systems
+        ]
+        q = phases.select(jnp.stack([p[0] for p in projected]))
+        qd = phases.select(jnp.stack([p[1] for p in projected]))
     else:
         qa, qda = stabilization.project_saved(system, run.q, run.qd, ts, args)
         qf, qdf = stabilization.project_saved(phases.free, run.q, run.qd, ts, args)
@@ -1157,10 +1632,21 @@ def _simulate(
     # A run that failed where the KKT matrix is singular failed because of it: the
     # vector field returns NaN there, so the steps were rejected until the budget ran
     # out. Checked at the last state reached (and at the saved states if available).
-    end_system = system if phases is None else phases.free
+    end_system = system if phases is None or by_mode else phases.free
     if saveat.multipliers:
-        (lam, singular_saved), singular_end = solved(system, None, phases is None)
-        if phases is not None:
+        if by_mode:
+            per_mode = [
+                solved(sys_m, keep, True)
+                for sys_m, keep in zip(phases.systems, phases.keep_rows, strict=True)
+            ]
+            lam = phases.select(jnp.stack([p[0][0] for p in per_mode]))
+            singular_saved = phases.select(jnp.stack([p[0][1] for p in per_mode]))
+            singular_end = phases.select(
+                jnp.stack([p[1] for p in per_mode]), phases.end_mode
+            )
+        else:
+            (lam, singular_saved), singular_end = solved(system, None, phases is None)
+        if phases is not None and not by_mode:
             (lam_f, singular_f), singular_end = solved(
                 phases.free, phases.keep_rows, True
             )
@@ -1190,6 +1676,12 @@ def _simulate(
     if saveat.multipliers:
         reached = jnp.all(jnp.isfinite(q), axis=1)
         singular = (singular_end & end_finite) | jnp.any(extra["singular"] & reached)
+    elif by_mode:
+        flags = [
+            _solve_accelerations(sys_m, run.q_end, run.qd_end, run.t_end, args)[2]
+            for sys_m in phases.systems
+        ]
+        singular = phases.select(jnp.stack(flags), phases.end_mode) & end_finite
     else:
         _, _, singular = _solve_accelerations(
             end_system, run.q_end, run.qd_end, run.t_end, args
@@ -1226,6 +1718,7 @@ def _simulate(
         result=result,
         stats=run.stats,
         release=run.release,
+        events=run.events,
     )
     if throw:
         traj = result.error_if(traj, result != RESULTS.successful)

@@ -4,6 +4,7 @@ writes it (the function or Lagrangian, the constraints, the closed-form answer),
 """
 
 from . import (
+    bouncing_ball as bouncing_ball,
     catenary as catenary,
     chain as chain,
     cylinder_volume as cylinder_volume,
