@@ -254,6 +254,82 @@ ax.legend();
     ),
     md(
         r"""
+## Contacts that come and go: a bouncing ball
+
+After detachment the cylinder flies free; if it met a floor, the contact would be
+made again. At re-contact the velocity jumps: Newton's restitution law
+$A\dot q^+ = -e\, A \dot q^-$ on the contact's rows, with an impulse
+$\Lambda$ along them, $M \Delta\dot q = A^T \Lambda$: the same KKT matrix as the
+equations of motion, solved at the velocity level. A `cjax.Unilateral` with a
+`restitution` and `simulate(..., max_events=N)` release and re-make contacts as often
+as they occur, in one compiled call; `traj.events` lists them.
+
+A ball dropped from rest at height $h$ first hits the floor at $t_1 = \sqrt{2h/g}$
+with speed $v_1 = \sqrt{2gh}$; each bounce leaves with $e$ times the speed, so the
+impact times form a geometric series,
+$t_k = t_1 + \tfrac{2 v_1}{g}(e + e^2 + \dots + e^{k-1})$, which converges to
+$t_\infty = t_1 + \tfrac{2 e v_1}{g(1-e)}$: infinitely many bounces in finite time
+(Zeno). No integrator can take them all; `rest_speed` ends the series physically: an
+impact slower than it is inelastic, and the ball rests on the floor (its multiplier is
+then $mg$).
+"""
+    ),
+    code(
+        """
+from constrained_jax.scenes import bouncing_ball
+
+
+h0, rest_speed = 1.0, 0.3
+es = jnp.array([0.5, 0.7, 0.8])
+ts = jnp.linspace(0.0, 5.0, 1001)
+
+
+@jax.jit
+@jax.vmap
+def bounce(e):
+    args = bouncing_ball.default_args(e=e, rest_speed=rest_speed)
+    q0, qd0 = bouncing_ball.state(h0)
+    return cjax.simulate(
+        bouncing_ball.system(),
+        (0.0, 5.0),
+        q0,
+        qd0,
+        args,
+        saveat=cjax.SaveAt(ts=ts),
+        max_events=24,
+        throw=False,
+    )
+
+
+runs = bounce(es)
+assert np.all(runs.result == cjax.RESULTS.successful)
+for i, e in enumerate(np.asarray(es)):
+    ball_args = bouncing_ball.default_args(e=e)
+    k_rest = bouncing_ball.rest_impact(h0, e, 9.81, rest_speed)
+    t_rest = bouncing_ball.impact_time(k_rest, h0, ball_args)
+    print(f"e = {e}: {int(runs.events.count[i])} impacts, rests at t = {t_rest:.6f}")
+    assert int(runs.events.count[i]) == k_rest
+    for k in (1, 2, 3, k_rest):
+        np.testing.assert_allclose(
+            runs.events.time[i, k - 1],
+            bouncing_ball.impact_time(k, h0, ball_args),
+            rtol=1e-9,
+        )
+    assert t_rest < bouncing_ball.zeno_time(h0, ball_args)
+    # At rest on the floor: y = 0 and the floor pushes with m g.
+    np.testing.assert_allclose(runs.q[i, -1, 1], 0.0, atol=1e-9)
+    np.testing.assert_allclose(runs.multipliers[i, -1, 0], 9.81, rtol=1e-9)
+
+fig, ax = plt.subplots(figsize=(8, 3.5), layout="constrained")
+for i, e in enumerate(np.asarray(es)):
+    ax.plot(ts, runs.q[i, :, 1], label=f"$e = {e}$")
+ax.set_xlabel("$t$")
+ax.set_ylabel("height $y$")
+ax.legend();
+"""
+    ),
+    md(
+        r"""
 ## Larger sweeps
 
 - `batch_size` sets the memory: only one chunk is on the devices at a time, however

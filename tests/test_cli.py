@@ -24,6 +24,7 @@ SCENES = [
     "cylinder_volume",
     "pendulum",
     "two_cylinders",
+    "bouncing_ball",
     "rolling_disk",
     "rotating_hoop",
     "catenary",

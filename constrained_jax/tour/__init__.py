@@ -10,6 +10,7 @@ it to `SCENES` below. The library never imports the tour.
 from dataclasses import replace
 
 from . import (
+    bouncing_ball,
     catenary,
     cylinder_volume,
     dido,
@@ -38,6 +39,7 @@ SCENES: dict[str, Scene] = {
         cylinder_volume,
         pendulum,
         two_cylinders,
+        bouncing_ball,
         rolling_disk,
         rotating_hoop,
         catenary,
