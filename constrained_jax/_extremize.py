@@ -190,8 +190,12 @@ class Extremum(eqx.Module):
     kind: EXTREMUM
     result: RESULTS
     stats: dict[str, Any]
-    inequality_multipliers: Float[Array, " m"]
-    active: Bool[Array, " m"]
+    # Defaults (empty) so that an `Extremum` built without inequalities, as before
+    # they existed, still constructs.
+    inequality_multipliers: Float[Array, " m"] = eqx.field(
+        default_factory=lambda: jnp.zeros((0,))
+    )
+    active: Bool[Array, " m"] = eqx.field(default_factory=lambda: jnp.zeros((0,), bool))
 
 
 def _flat_constraints(constraints, unravel):
