@@ -13,10 +13,9 @@ projection (Held, Wolfe and Crowder 1974; Duchi et al. 2008). For `n` states:
    median of repeats) against `scipy.optimize.minimize` with analytic gradients and
    Hessians, the error of each against the exact solution reported beside its time;
 2. a batch of 100 problems with different `c`: one `jax.jit(jax.vmap(...))` call
-   against a SciPy loop (timed on 20 and scaled). (A batch of 200 or 300 problems of
-   `n = 10` hangs inside XLA's CPU runtime, every thread idle: a deadlock of its
-   intra-op thread pool; `XLA_FLAGS=--xla_cpu_multi_thread_eigen=false` avoids it.
-   Not understood yet; see `docs/sharp-edges.md`.)
+   against a SciPy loop (timed on 20 and scaled). (Batches of 200 or more used to
+   hang inside XLA's CPU runtime before the Levenberg-Marquardt direction moved
+   from a second LU to conjugate gradients; see `docs/sharp-edges.md`.)
 
 SciPy's tolerances are tightened until its error is about 1e-8 or better (its tests
 are absolute; the objective is O(1) here).

@@ -124,6 +124,50 @@ class InequalityProblem(eqx.Module):
 # ---------------------------------------------------------------------------------
 
 
+def _conjugate_gradient(matrix, shift, rhs):
+    """Solve `(matrix + shift I) d = rhs` (symmetric positive definite) by conjugate
+    gradients from `d = 0`, at most `len(rhs)` steps, to a relative residual of
+    `sqrt(eps)`.
+
+    Used for the Levenberg-Marquardt direction instead of a second factorisation:
+    beside the Newton step's LU, a second batched LAPACK factorisation in the same
+    loop body deadlocked XLA's CPU runtime under `jax.vmap` at a few hundred
+    problems (every thread of its intra-op pool idle). Every conjugate-gradient
+    iterate of an SPD system started at zero is a descent direction of its
+    quadratic model, `rhs . d > 0`, so with `rhs = -grad Psi` the direction
+    descends `Psi` however early the iteration stops.
+    """
+    size = rhs.shape[0]
+    tol = jnp.sqrt(jnp.finfo(rhs.dtype).eps) * jnp.linalg.norm(rhs)
+
+    def apply(v):
+        return matrix @ v + shift * v
+
+    def cond(c):
+        _, r, _, rr, it = c
+        return (it < size) & (jnp.sqrt(rr) > tol)
+
+    def body(c):
+        d, r, p, rr, it = c
+        ap = apply(p)
+        pap = jnp.dot(p, ap)
+        alpha = rr / jnp.where(pap > 0, pap, 1.0)
+        alpha = jnp.where(pap > 0, alpha, 0.0)
+        d = d + alpha * p
+        r = r - alpha * ap
+        rr_new = jnp.dot(r, r)
+        beta = rr_new / jnp.where(rr > 0, rr, 1.0)
+        p = r + beta * p
+        # A non-positive curvature (round-off) ends the iteration where it is.
+        it = jnp.where(pap > 0, it + 1, size)
+        return d, r, p, rr_new, it
+
+    zero = jnp.zeros_like(rhs)
+    rr0 = jnp.dot(rhs, rhs)
+    d, *_ = lax.while_loop(cond, body, (zero, rhs, rhs, rr0, 0))
+    return d
+
+
 class _State(eqx.Module):
     done: Bool[Array, ""]
     result: RESULTS
@@ -209,8 +253,9 @@ class _SemismoothNewton(AbstractKKTSolver):
             jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
         )
         nu = jnp.maximum(nu, 1e3 * eps * jnp.max(jnp.abs(jtj)))
-        eye = jnp.eye(z.shape[0], dtype=dtype)
-        dz_lm = jnp.linalg.solve(jnp.where(finite, jtj + nu * eye, eye), -grad_psi)
+        dz_lm = _conjugate_gradient(
+            jnp.where(finite, jtj, 0.0), jnp.where(finite, nu, 1.0), -grad_psi
+        )
         dz_lm = jnp.where(jnp.all(jnp.isfinite(dz_lm)), dz_lm, 0.0)
 
         def merit(z_):
