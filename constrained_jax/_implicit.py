@@ -151,6 +151,48 @@ def nan_tangent_where(tree: PyTree[Array], failed: Bool[Array, ""]) -> PyTree[Ar
     return _nan_tangent_where(tree, failed)
 
 
+def nan_derivatives_if_failed(
+    outputs: PyTree, inputs: PyTree, failed: Bool[Array, ""]
+) -> PyTree:
+    """The identity on `outputs` (a `Trajectory`, a `FunctionalSolution`), whose
+    derivatives with respect to `inputs` are NaN where `failed`, in forward and in
+    reverse mode; the leaves that are not floating-point arrays pass through.
+
+    For the end of a public solve. `throw=True`'s check rides on the primal output,
+    so a program that keeps only a derivative (`jax.grad` of a loss, under
+    `jax.vmap`) drops it; the NaN derivative still refuses the failed solve.
+    Marking the output tangents alone is not enough in reverse mode: a cotangent that
+    flows back through `where(reached, y, inf)` (a save time the failed run never
+    reached) is zeroed by the `where`, and the gradient would read 0. So the tangent
+    map gets a second term, `c * sum(t_inputs)` with `c = NaN` where `failed` and 0
+    elsewhere: linear, and its transpose sends `c * sum(cotangents)` straight to
+    every input.
+    """
+    out_f, out_rest = eqx.partition(outputs, eqx.is_inexact_array)
+    in_f, _ = eqx.partition(inputs, eqx.is_inexact_array)
+    return eqx.combine(_nan_derivatives(out_f, in_f, failed), out_rest)
+
+
+@jax.custom_jvp
+def _nan_derivatives(outputs, inputs, failed):
+    del inputs, failed
+    return outputs
+
+
+@_nan_derivatives.defjvp
+def _nan_derivatives_jvp(primals, tangents):
+    outputs, _, failed = primals
+    t_outputs, t_inputs, _ = tangents
+    leaves = jtu.tree_leaves(t_inputs)
+    total = sum((jnp.sum(leaf) for leaf in leaves), jnp.zeros(()))
+
+    def mark(leaf):
+        c = jnp.where(failed, jnp.nan, 0.0).astype(leaf.dtype)
+        return leaf * jnp.where(failed, jnp.nan, 1.0).astype(leaf.dtype) + c * total.astype(leaf.dtype)
+
+    return outputs, jtu.tree_map(mark, t_outputs)
+
+
 @jax.custom_jvp
 def _nan_tangent_where(tree, failed):
     return tree

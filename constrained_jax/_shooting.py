@@ -33,6 +33,7 @@ from ._functional import (
     FunctionalMultipliers,
     FunctionalSolution,
 )
+from ._implicit import nan_derivatives_if_failed
 from ._misc import as_traced_args, check_max_steps
 from ._results import RESULTS
 
@@ -233,6 +234,10 @@ def _solve_shooting(
         stats={"num_steps": root.stats["num_steps"], "max_steps": max_steps},
         interval=functional.interval,
         discretization=discretization,
+    )
+    # NaN derivatives for a failed solve (see `nan_derivatives_if_failed`).
+    sol = nan_derivatives_if_failed(
+        sol, (functional, args, slope0, multipliers0), result != RESULTS.successful
     )
     if throw:
         sol = result.error_if(sol, result != RESULTS.successful)

@@ -22,6 +22,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._adjoint import default_adjoint
 from ._contact import build_modes, Events, find_unilaterals, impact
+from ._implicit import nan_derivatives_if_failed
 from ._misc import (
     all_finite,
     as_traced_args,
@@ -1719,6 +1720,13 @@ def _simulate(
         stats=run.stats,
         release=run.release,
         events=run.events,
+    )
+    # The derivatives of a failed run are NaN (forward and reverse). `throw=True`
+    # raises only where the trajectory itself is used: a program that keeps only a
+    # gradient (`jax.grad` of a loss, under `jax.vmap`) drops the check with the
+    # primal, and must still not get a number.
+    traj = nan_derivatives_if_failed(
+        traj, (system, q0, qd0, args, t0, t1), result != RESULTS.successful
     )
     if throw:
         traj = result.error_if(traj, result != RESULTS.successful)

@@ -79,7 +79,7 @@ import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Holonomic
-from ._implicit import implicit_jvp
+from ._implicit import implicit_jvp, nan_derivatives_if_failed
 from ._misc import all_finite, check_max_steps, default_float_dtype
 from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
@@ -521,6 +521,10 @@ def integrate_variational(
     if t0.shape != () or t1.shape != () or dt0.shape != ():
         raise ValueError("`t0`, `t1` and `dt0` must be scalars.")
     sol = _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps)
+    # NaN derivatives for a failed run (see `nan_derivatives_if_failed`).
+    sol = nan_derivatives_if_failed(
+        sol, (system, q0, qd0, args, t0, t1), sol.result != RESULTS.successful
+    )
     if throw:
         sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
     return sol

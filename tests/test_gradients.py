@@ -90,3 +90,56 @@ def test_release_time_gradient_matches_the_closed_form():
     outputs_jit = jax.jit(outputs)
     fd = finite_difference_grad(lambda x: outputs_jit(x)[1], p, rel_step=1e-5)
     np.testing.assert_allclose(jac[1], fd, rtol=2e-5, atol=1e-8)
+
+
+def _pendulum_x(t1, g, throw, adjoint=None):
+    """`x(t1)` of the pendulum released at 1 rad, with a step budget of 24: enough
+    for `t1 = 0.2`, not for `t1 = 5`."""
+    from constrained_jax.scenes import pendulum as pend
+
+    args = pend.default_args(g=g)
+    q0, qd0 = pend.state(jnp.asarray(1.0), jnp.asarray(0.0), args)
+    traj = cjax.simulate(
+        pend.system(),
+        (0.0, t1),
+        q0,
+        qd0,
+        args,
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
+        saveat=FINAL,
+        max_steps=24,
+        throw=throw,
+        adjoint=adjoint,
+    )
+    return traj.q[-1, 0], traj.result
+
+
+@pytest.mark.parametrize("throw", [False, True])
+def test_failed_run_has_nan_gradient(throw):
+    """A run that spends its step budget has no derivative: `jax.grad` gives NaN,
+    also with `throw=True` (whose check rides on the trajectory, which a program
+    keeping only the gradient drops), and under `jax.vmap` only for the failed
+    member of a batch; the successful member's gradient matches finite
+    differences."""
+    loss = lambda t1, g: _pendulum_x(t1, g, throw)[0]
+    grad = jax.jit(jax.vmap(jax.grad(loss, argnums=1)))
+    t1s, g = jnp.array([0.2, 5.0]), jnp.array([9.81, 9.81])
+    grads = np.asarray(grad(t1s, g))
+    assert np.isnan(grads[1])
+    assert np.isfinite(grads[0])
+    results = jax.jit(jax.vmap(lambda t1, g: _pendulum_x(t1, g, False)[1]))(t1s, g)
+    codes = np.asarray(results._value)
+    assert codes[0] == cjax.RESULTS.successful._value
+    assert codes[1] == cjax.RESULTS.max_steps_reached._value
+    value = jax.jit(lambda g: _pendulum_x(0.2, g, False)[0])
+    step = 1e-4
+    fd = (value(9.81 + step) - value(9.81 - step)) / (2 * step)
+    np.testing.assert_allclose(grads[0], fd, rtol=1e-5)
+    # Forward mode too (`jax.jvp` keeps the primal, so `throw=True` raises there).
+    forward = lambda g: _pendulum_x(5.0, g, throw, diffrax.ForwardMode())[0]
+    if throw:
+        with pytest.raises(Exception, match="max_steps|maximum number of"):
+            jax.jvp(forward, (9.81,), (1.0,))
+    else:
+        _, tangent = jax.jvp(forward, (9.81,), (1.0,))
+        assert np.isnan(tangent)

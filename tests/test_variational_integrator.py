@@ -597,3 +597,18 @@ def test_selectable_in_simulate():
             dt0=0.01,
             stabilization=cjax.Projection(),
         )
+
+
+def test_failed_run_has_nan_gradient():
+    """A run cut short by `max_steps` (50 steps needed, 10 allowed) has no
+    derivative: `jax.grad` of a saved coordinate is NaN, not the zero that flows
+    back through the unreached (`inf`) save."""
+    run = _pendulum_runner(cjax.VariationalIntegrator(), max_steps=10)
+    args = pendulum.default_args()
+    sol = run(0.5, 0.0, args, 0.01, TS)
+    assert sol.result == cjax.RESULTS.max_steps_reached
+    grad = jax.grad(lambda th: run(th, 0.0, args, 0.01, TS).q[-1, 0])(0.5)
+    assert np.isnan(grad)
+    # The same run with the budget it needs has a finite gradient.
+    ok = _pendulum_runner(cjax.VariationalIntegrator(), max_steps=100)
+    assert np.isfinite(jax.grad(lambda th: ok(th, 0.0, args, 0.01, TS).q[-1, 0])(0.5))
