@@ -201,9 +201,17 @@ class _SemismoothNewton(AbstractKKTSolver):
         res = lambda z_: residual(z_, args)
         r = res(z)
         jac = jax.jacfwd(res)(z)
-        psi = 0.5 * jnp.dot(r, r)
-        grad_psi = jac.T @ r
         finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(jac))
+        # The merit function of the fallback weighs each row of `r` by the
+        # reciprocal of its row of the Jacobian (max-norm): stationarity (in the
+        # units of grad F) and complementarity (in the units of H) would otherwise
+        # differ by as many orders of magnitude as the multipliers are large, and
+        # Levenberg-Marquardt would ignore the complementarity rows. (The Newton
+        # step is invariant to this scaling.)
+        row_size = jnp.max(jnp.abs(jnp.where(finite, jac, 0.0)), axis=1)
+        weight = 1 / jnp.where(row_size > 0, row_size, 1.0)
+        psi = 0.5 * jnp.dot(weight * r, weight * r)
+        grad_psi = jac.T @ (weight**2 * r)
         one = jnp.ones((), dtype)
 
         # The Newton direction, if the Jacobian is (numerically) invertible; the
@@ -248,7 +256,8 @@ class _SemismoothNewton(AbstractKKTSolver):
 
         # Otherwise Levenberg-Marquardt, always a descent direction of Psi, with an
         # Armijo line search on Psi.
-        jtj = jac.T @ jac
+        scaled_jac = weight[:, None] * jac
+        jtj = scaled_jac.T @ scaled_jac
         nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(
             jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
         )
@@ -259,7 +268,7 @@ class _SemismoothNewton(AbstractKKTSolver):
         dz_lm = jnp.where(jnp.all(jnp.isfinite(dz_lm)), dz_lm, 0.0)
 
         def merit(z_):
-            r_ = res(z_)
+            r_ = weight * res(z_)
             value = 0.5 * jnp.dot(r_, r_)
             return jnp.where(jnp.isfinite(value), value, jnp.inf)
 

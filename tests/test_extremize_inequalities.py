@@ -653,3 +653,32 @@ def test_large_vmapped_batch_finishes():
         pytest.fail("jit(vmap(extremize)) over 300 problems did not finish in 240 s")
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.startswith("ok")
+
+
+@jax.jit
+@jax.vmap
+def _steep_cap(c, u, x0):
+    return cjax.extremize(
+        lambda x, a: a[0] * (x[0] - 3 * a[1]) ** 2,
+        x0[None],
+        (c, u),
+        upper=u[None],
+        sense="minimize",
+        throw=False,
+    )
+
+
+def test_badly_scaled_multipliers():
+    """`min c (x - 3u)^2` with `x <= u`: `x = u`, `mu = 4 c u`, for curvatures `c`
+    up to 1e15 and caps `u` from 1e-5 to 1e5 (multipliers up to 4e20, constraints
+    of order 1e-5), from `x0 = 0` and from the infeasible unconstrained optimum
+    `3u`. (Before the fallback's merit function weighed the rows by the Jacobian,
+    every `c >= 1e12` stopped after 256 steps with `infeasible_inequalities`.)"""
+    grid = np.array([(c, u) for c in (1.0, 1e6, 1e12, 1e15) for u in (1e-5, 1.0, 1e5)])
+    c, u = np.repeat(grid, 2, axis=0).T
+    x0 = np.where(np.arange(len(c)) % 2 == 0, 0.0, 3 * u)
+    sol = _steep_cap(jnp.asarray(c), jnp.asarray(u), jnp.asarray(x0))
+    assert np.all(np.asarray(sol.result._value) == cjax.RESULTS.successful._value)
+    np.testing.assert_allclose(sol.x[:, 0], u, rtol=1e-12)
+    np.testing.assert_allclose(sol.inequality_multipliers[:, 0], 4 * c * u, rtol=1e-10)
+    assert np.all(np.asarray(sol.active[:, 0]))
