@@ -2,6 +2,9 @@
 range-space method with reciprocals, `constrained_jax._solver.diagonal`), against
 `FullKKTLU` on the same systems, with zero masses, singular systems and derivatives."""
 
+import functools
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,8 +35,8 @@ def _problem(rng, n, k, jac_pattern=None, masses=None):
     return mass, jac, jnp.asarray(rng.normal(size=n)), jnp.asarray(rng.normal(size=k))
 
 
-def _reference(mass, jac, rhs, bias):
-    return cjax.FullKKTLU().solve(mass, jac, rhs, bias)
+# The reference, jitted: eagerly each of its operations compiles a program of its own.
+_reference = jax.jit(cjax.FullKKTLU().solve)
 
 
 def _assert_agree(out, ref, tol=1e-12):
@@ -171,32 +174,48 @@ def _loss(solver, pattern):
     return loss
 
 
+@functools.cache
+def _derivative_programs():
+    """The jitted programs of `test_derivatives`, built once: both cases (with and
+    without a zero mass) differ only in the traced `theta`, so they share them."""
+    pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
+    loss, loss_lu = _loss(AUTO, pattern), _loss(cjax.FullKKTLU(), pattern)
+    return types.SimpleNamespace(
+        loss=jax.jit(loss),
+        grad=jax.jit(jax.grad(loss)),
+        grad_lu=jax.jit(jax.grad(loss_lu)),
+        jvp=jax.jit(lambda t, v: jax.jvp(loss, (t,), (v,))),
+        vmap_grad=jax.jit(jax.vmap(jax.grad(loss))),
+        hessian=jax.jit(jax.jacfwd(jax.grad(loss))),
+        hessian_lu=jax.jit(jax.hessian(loss_lu)),
+    )
+
+
 @pytest.mark.parametrize("zero_mass", [False, True])
 def test_derivatives(zero_mass):
     """jvp, grad and vmap(grad) against finite differences and `FullKKTLU`; with a
     coupled zero mass the derivatives go through the general method."""
     rng = np.random.default_rng(5)
-    pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
     theta = jnp.asarray(rng.normal(size=14)).at[:3].set(jnp.array([1.0, 2.0, 0.7]))
     if zero_mass:
         theta = theta.at[2].set(0.0)
-    loss, loss_lu = _loss(AUTO, pattern), _loss(cjax.FullKKTLU(), pattern)
-    grad = jax.jit(jax.grad(loss))(theta)
-    grad_lu = jax.jit(jax.grad(loss_lu))
+    programs = _derivative_programs()
+    grad = programs.grad(theta)
+    grad_lu = programs.grad_lu
     np.testing.assert_allclose(grad, grad_lu(theta), rtol=1e-9, atol=1e-10)
     free = np.ones(14, bool)
     free[2] = not zero_mass  # finite differences would step into negative mass
-    fd = finite_difference_grad(jax.jit(loss), theta)
+    fd = finite_difference_grad(programs.loss, theta)
     np.testing.assert_allclose(grad[free], fd[free], rtol=1e-6, atol=1e-7)
     tangent = jnp.asarray(rng.normal(size=14))
-    _, dout = jax.jit(lambda t, v: jax.jvp(loss, (t,), (v,)))(theta, tangent)
+    _, dout = programs.jvp(theta, tangent)
     np.testing.assert_allclose(dout, grad @ tangent, rtol=1e-10)
     thetas = jnp.stack([theta, theta.at[0].set(1.5)])
-    grads = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
+    grads = programs.vmap_grad(thetas)
     np.testing.assert_allclose(
         grads, jnp.stack([grad_lu(t) for t in thetas]), rtol=1e-9, atol=1e-10
     )
-    hessian = jax.jit(jax.jacfwd(jax.grad(loss)))(theta)
+    hessian = programs.hessian(theta)
     np.testing.assert_allclose(
-        hessian, jax.jit(jax.hessian(loss_lu))(theta), rtol=1e-7, atol=1e-8
+        hessian, programs.hessian_lu(theta), rtol=1e-7, atol=1e-8
     )

@@ -5,6 +5,9 @@ nonsingular system with a singular `M` (two cylinders with `I = 0`), a free gaug
 (the cylinder in free flight with `I = 0`) and a singular system (a force on the
 massless spin)."""
 
+import functools
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -84,38 +87,63 @@ def _close(a, b, rtol=1e-10):
 CASES = [("attached", 0.09), ("attached", 0.0), ("free", 0.09), ("free", 0.0)]
 
 
-@pytest.mark.parametrize("solver", SOLVERS.values(), ids=SOLVERS.keys())
+@functools.cache
+def _first_derivative_programs(solver, name):
+    """The jitted functions of `test_first_derivatives_match_plain` for one system,
+    built once: the point (and with it the inertia) and the weights are traced
+    arguments, so the cases `I = 0.09` and `I = 0` run the same compiled programs."""
+    system = _systems(SOLVERS[solver])[name]
+    custom, plain = _custom(system), _plain(system)
+    scalar = lambda p, weights: weights @ custom(p)
+    return types.SimpleNamespace(
+        custom=jax.jit(custom),
+        plain=jax.jit(plain),
+        plain_jacobian=jax.jit(jax.jacfwd(plain)),
+        jacfwd=jax.jit(jax.jacfwd(custom)),
+        jacrev=jax.jit(jax.jacrev(custom)),
+        jvp=jax.jit(lambda p, v: jax.jvp(custom, (p,), (v,))[1]),
+        grad=jax.jit(jax.grad(scalar)),
+        vmap_grad=jax.jit(jax.vmap(jax.grad(scalar), in_axes=(0, None))),
+    )
+
+
+@pytest.mark.parametrize("solver", SOLVERS.keys(), ids=SOLVERS.keys())
 @pytest.mark.parametrize("name, inertia", CASES)
 def test_first_derivatives_match_plain(solver, name, inertia):
     """jvp, jacfwd, jacrev, grad and vmap(grad) agree with the plain derivative (free
     with `I = 0`: `theta2` is a free gauge, its acceleration and tangent are 0)."""
-    system = _systems(solver)[name]
-    custom, plain = _custom(system), _plain(system)
+    programs = _first_derivative_programs(solver, name)
     p = _point(inertia)
-    _close(jax.jit(custom)(p), jax.jit(plain)(p), 1e-13)
-    plain_jacobian = jax.jit(jax.jacfwd(plain))  # one program for every point
-    ref = plain_jacobian(p)
-    _close(jax.jit(jax.jacfwd(custom))(p), ref)
-    _close(jax.jit(jax.jacrev(custom))(p), ref)
+    _close(programs.custom(p), programs.plain(p), 1e-13)
+    ref = programs.plain_jacobian(p)
+    _close(programs.jacfwd(p), ref)
+    _close(programs.jacrev(p), ref)
     v = jnp.linspace(-1.0, 1.0, p.shape[0])
-    _close(jax.jit(lambda p, v: jax.jvp(custom, (p,), (v,))[1])(p, v), ref @ v)
+    _close(programs.jvp(p, v), ref @ v)
     weights = jnp.arange(1.0, ref.shape[0] + 1)
-    scalar = lambda p: weights @ custom(p)
-    _close(jax.jit(jax.grad(scalar))(p), weights @ ref)
+    _close(programs.grad(p, weights), weights @ ref)
     batch = jnp.stack([p, p.at[6].add(0.1), p.at[7].add(-0.2)])
-    refs = jnp.stack([weights @ plain_jacobian(b) for b in batch])
-    _close(jax.jit(jax.vmap(jax.grad(scalar)))(batch), refs)
+    refs = jnp.stack([weights @ programs.plain_jacobian(b) for b in batch])
+    _close(programs.vmap_grad(batch, weights), refs)
     if name == "free" and inertia == 0.0:
         assert np.all(np.asarray(ref[2]) == 0.0)  # the gauge's acceleration
 
 
-@pytest.mark.parametrize("name, inertia", CASES)
-def test_gradient_matches_finite_differences(name, inertia):
+@functools.cache
+def _finite_difference_program(name):
+    """`weights @ solve(p)` for the Automatic solver, jitted once per system (shared
+    by `I = 0.09` and `I = 0`), with its jitted gradient."""
     system = _systems(cjax.Automatic())[name]
     weights = jnp.array([1.0, -2.0, 0.5, 3.0, -1.0])[: 3 + (name == "attached") * 2]
-    scalar = jax.jit(lambda p: weights @ _custom(system)(p))
+    scalar = lambda p: weights @ _custom(system)(p)
+    return jax.jit(scalar), jax.jit(jax.grad(scalar))
+
+
+@pytest.mark.parametrize("name, inertia", CASES)
+def test_gradient_matches_finite_differences(name, inertia):
+    scalar, scalar_grad = _finite_difference_program(name)
     p = _point(inertia)
-    grad = np.asarray(jax.grad(scalar)(p))
+    grad = np.asarray(scalar_grad(p))
     # Away from I = 0 only (a one-sided perturbation of I there is another system).
     keep = np.arange(p.shape[0]) != 1
     fd = finite_difference_grad(scalar, p)
@@ -129,7 +157,7 @@ def test_singular_zero_tangents(solver):
     system = _systems(solver)["forced-free"]
     p = _point(0.0)
     q, qd, args = _split(p)
-    assert bool(system.solve_accelerations(q, qd, 0.0, args)[2])
+    assert bool(jax.jit(system.solve_accelerations)(q, qd, 0.0, args)[2])
     custom = _custom(system)
     jacrev = jax.jit(jax.jacrev(custom))
     for jac in (jax.jit(jax.jacfwd(custom))(p), jacrev(p)):

@@ -109,23 +109,40 @@ def _floor_system(gravity):
     return cjax.LagrangianSystem(lagrangian, constraints=floor)
 
 
+def _gravity(t, args):
+    """`g(t) = g (cos(omega t) + offset)`: every case below is this one function with
+    its own `omega` and `offset` in `args`, so that they share one system and one
+    compiled `simulate`."""
+    return args["g"] * (jnp.cos(args["omega"] * t) + args["offset"])
+
+
+def _gravity_args(omega, offset):
+    return {
+        "g": jnp.asarray(9.81),
+        "omega": jnp.asarray(omega, float),
+        "offset": jnp.asarray(offset, float),
+    }
+
+
+FLOOR = _floor_system(_gravity)
+# name: (args of `_gravity`, release time t*)
 GRAVITY = {
-    "cos": (lambda t, a: a["g"] * jnp.cos(t), np.pi / 2),
-    "shallow dip": (lambda t, a: a["g"] * (jnp.cos(t) + 0.99), np.arccos(-0.99)),
-    "fast": (lambda t, a: a["g"] * jnp.cos(40 * t), np.pi / 80),
+    "cos": (_gravity_args(1.0, 0.0), np.pi / 2),  # 9.81 cos t
+    "shallow dip": (_gravity_args(1.0, 0.99), np.arccos(-0.99)),  # 9.81 (cos t + 0.99)
+    "fast": (_gravity_args(40.0, 0.0), np.pi / 80),  # 9.81 cos 40 t
 }
 TS = jnp.linspace(0.0, 5.0, 51)
 
 
 @pytest.fixture(scope="module", params=list(GRAVITY))
 def floor_run(request):
-    gravity, t_star = GRAVITY[request.param]
+    args, t_star = GRAVITY[request.param]
     traj = cjax.simulate(
-        _floor_system(gravity),
+        FLOOR,
         (0.0, 5.0),
         jnp.zeros(2),
         jnp.array([1.0, 0.0]),
-        {"g": jnp.asarray(9.81)},
+        args,
         saveat=cjax.SaveAt(ts=TS),
         throw=False,
     )
@@ -139,7 +156,7 @@ def test_release_inside_a_long_step(floor_run):
     np.testing.assert_allclose(traj.release.time, t_star, rtol=0, atol=1e-9)
     attached = np.asarray(traj.ts <= traj.release.time)
     lam = np.asarray(traj.multipliers[:, 0])
-    gravity = np.asarray(GRAVITY[name][0](traj.ts, {"g": 9.81}))
+    gravity = np.asarray(_gravity(traj.ts, GRAVITY[name][0]))
     # Push-only: never negative while attached (lambda = g(t) there, >= 0).
     assert np.all(lam[attached] >= -1e-9)
     np.testing.assert_allclose(lam[attached], gravity[attached], atol=1e-8)
@@ -163,13 +180,12 @@ def test_free_flight_after_release_closed_form(floor_run):
 
 
 def test_release_stepped_over_by_a_fixed_step_is_refused():
-    gravity, _ = GRAVITY["cos"]
     traj = cjax.simulate(
-        _floor_system(gravity),
+        FLOOR,
         (0.0, 5.0),
         jnp.zeros(2),
         jnp.array([1.0, 0.0]),
-        {"g": jnp.asarray(9.81)},
+        GRAVITY["cos"][0],
         stepsize_controller=FIXED,
         dt0=5.0,
         saveat=cjax.SaveAt(t1=True),
@@ -182,13 +198,12 @@ def test_release_stepped_over_by_a_fixed_step_is_refused():
 def test_release_bracketed_by_a_fixed_step_is_found():
     """A fixed step whose ends bracket the sign change (0 to 2.5: cos 2.5 < 0) is
     root-found as usual: release at pi/2."""
-    gravity, _ = GRAVITY["cos"]
     traj = cjax.simulate(
-        _floor_system(gravity),
+        FLOOR,
         (0.0, 5.0),
         jnp.zeros(2),
         jnp.array([1.0, 0.0]),
-        {"g": jnp.asarray(9.81)},
+        GRAVITY["cos"][0],
         stepsize_controller=FIXED,
         dt0=2.5,
         saveat=cjax.SaveAt(t1=True),
@@ -197,9 +212,8 @@ def test_release_bracketed_by_a_fixed_step_is_found():
 
 
 def test_unilateral_backwards_is_refused():
-    gravity, _ = GRAVITY["cos"]
-    system = _floor_system(gravity)
-    args = {"g": jnp.asarray(9.81)}
+    system = FLOOR
+    args = GRAVITY["cos"][0]
     with pytest.raises(ValueError, match="backwards"):
         cjax.simulate(system, (0.0, -1.0), jnp.zeros(2), jnp.zeros(2), args)
 
@@ -239,6 +253,21 @@ def test_invalid_inputs(pend):
     assert traj.result == cjax.RESULTS.max_steps_reached
 
 
+@jax.jit
+def _run_with_saves(args, q0, qd0, ts):
+    """The pendulum saved at traced times `ts`: one compiled program for the three
+    grids below."""
+    return cjax.simulate(
+        pendulum.system(),
+        (0.0, 1.0),
+        q0,
+        qd0,
+        args,
+        saveat=cjax.SaveAt(ts=ts),
+        throw=False,
+    )
+
+
 @pytest.mark.parametrize(
     "ts", [jnp.array([0.5, 2.0]), jnp.array([-0.5, 0.5]), jnp.array([0.7, 0.3])]
 )
@@ -247,13 +276,7 @@ def test_bad_save_times_are_refused(pend, ts):
     with pytest.raises(ValueError, match="SaveAt"):
         cjax.simulate(system, (0.0, 1.0), q0, qd0, args, saveat=cjax.SaveAt(ts=ts))
 
-    @jax.jit
-    def run(ts_):
-        return cjax.simulate(
-            system, (0.0, 1.0), q0, qd0, args, saveat=cjax.SaveAt(ts=ts_), throw=False
-        )
-
-    assert run(ts).result == cjax.RESULTS.invalid_time_grid
+    assert _run_with_saves(args, q0, qd0, ts).result == cjax.RESULTS.invalid_time_grid
 
 
 def test_dt0_pointing_away_is_refused(pend):

@@ -1,6 +1,7 @@
 """`SparseSchur`, the structured saddle-point solve: agreement with a dense solve of the
 KKT matrix on chains, trees and rigid bodies, vmap, gradients, and refusals."""
 
+import functools
 import math
 
 import jax
@@ -14,6 +15,9 @@ from constrained_jax._solver.sparse_schur import _band_order, _plan
 from constrained_jax.scenes import chain
 
 
+# The references and the problems are jitted: eagerly each of their operations would
+# compile a program of its own (for every size).
+@jax.jit
 def dense_solve(mass, jac, rhs, bias):
     n, k = mass.shape[0], jac.shape[0]
     kkt = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k))]])
@@ -45,6 +49,11 @@ def assert_agrees(
 def tree_problem(parent, key, dim=2):
     """Particles `j` joined by rods to `parent[j]` (-1: the fixed pivot), random
     positive masses, random positions, forces and biases."""
+    return _tree_problem(tuple(int(j) for j in parent), key, dim)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _tree_problem(parent, key, dim):
     num = len(parent)
     k1, k2, k3, k4 = jax.random.split(key, 4)
     points = jax.random.normal(k1, (num, dim))
@@ -65,6 +74,7 @@ def tree_problem(parent, key, dim=2):
     )
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def chain_problem(num_links, key):
     args = chain.default_args(m=1.3)
     q, _ = chain.state(num_links, 0.4, args)
@@ -172,7 +182,7 @@ def test_rigid_bodies(seed, method):
 
 def test_no_constraints(getkey):
     mass, jac, rhs, _ = chain_problem(3, getkey())
-    x, lam, singular = cj.SparseSchur().solve(
+    x, lam, singular = jax.jit(cj.SparseSchur().solve)(
         sparse(mass), sparse(jnp.zeros((0, 6))), rhs, jnp.zeros((0,))
     )
     assert not singular and lam.shape == (0,)
@@ -238,7 +248,7 @@ def test_gradients(method, getkey):
 
 
 def _assert_singular(mass, jac, rhs, bias, method="auto", mass_pattern=None):
-    x, lam, singular = cj.SparseSchur(method=method).solve(
+    x, lam, singular = jax.jit(cj.SparseSchur(method=method).solve)(
         sparse(mass, mass_pattern), sparse(jac), rhs, bias
     )
     assert singular
@@ -268,7 +278,7 @@ def test_nonfinite_refused(method, getkey):
     mass, jac, rhs, bias = chain_problem(4, getkey())
     pattern = np.asarray(jac) != 0
     jac = jac.at[1, 2].set(jnp.nan)
-    x, lam, singular = cj.SparseSchur(method=method).solve(
+    x, lam, singular = jax.jit(cj.SparseSchur(method=method).solve)(
         sparse(mass), sparse(jac, pattern), rhs, bias
     )
     assert singular and jnp.all(x == 0) and jnp.all(lam == 0)
@@ -288,8 +298,10 @@ def test_structurally_zero_diagonal_is_dense(getkey):
     """A mass matrix with a structurally zero diagonal entry is solved densely."""
     mass, jac, rhs, bias = chain_problem(3, getkey())
     mass = mass.at[0, 0].set(0.0)
-    x, lam, singular = cj.SparseSchur().solve(sparse(mass), sparse(jac), rhs, bias)
-    x_ref, lam_ref, singular_ref = cj.FullKKTLU(unroll_max=0).solve(
+    x, lam, singular = jax.jit(cj.SparseSchur().solve)(
+        sparse(mass), sparse(jac), rhs, bias
+    )
+    x_ref, lam_ref, singular_ref = jax.jit(cj.FullKKTLU(unroll_max=0).solve)(
         mass, jac, rhs, bias
     )
     assert singular == singular_ref
