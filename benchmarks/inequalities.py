@@ -12,10 +12,11 @@ projection (Held, Wolfe and Crowder 1974; Duchi et al. 2008). For `n` states:
 1. one problem: our `jit`-compiled `extremize(..., lower=0)` (after compilation,
    median of repeats) against `scipy.optimize.minimize` with analytic gradients and
    Hessians, the error of each against the exact solution reported beside its time;
-2. a batch of 100 problems with different `c`: one `jax.jit(jax.vmap(...))` call
-   against a SciPy loop (timed on 20 and scaled). (Batches of 200 or more used to
-   hang inside XLA's CPU runtime before the Levenberg-Marquardt direction moved
-   from a second LU to conjugate gradients; see `docs/sharp-edges.md`.)
+2. batches of 100 and 1,000 problems with different `c`: one
+   `jax.jit(jax.vmap(...))` call against a SciPy loop (timed on 20 and scaled).
+   (Batches of 200 or more used to hang inside XLA's CPU runtime before the
+   Levenberg-Marquardt direction moved from a second LU to conjugate gradients;
+   see `docs/sharp-edges.md`.)
 
 SciPy's tolerances are tightened until its error is about 1e-8 or better (its tests
 are absolute; the objective is O(1) here).
@@ -213,7 +214,7 @@ def main() -> None:
     results = {
         "machine": machine_info(scipy=scipy.__version__),
         "one": [one(n, repeats) for n in sizes],
-        "batch": [batch(10, 100, 20, repeats)],
+        "batch": [batch(10, size, 20, repeats) for size in (100, 1000)],
     }
     os.makedirs(opts.out, exist_ok=True)
     with open(os.path.join(opts.out, "inequalities.json"), "w") as f:

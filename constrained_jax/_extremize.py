@@ -32,7 +32,7 @@ from ._kkt import (
     tangent_projector,
 )
 from ._misc import all_finite, as_traced_args, inexact_asarray
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.minres import MINRES
 from ._solver.newton import AbstractKKTSolver, Newton
@@ -437,18 +437,11 @@ def extremize(
     upper = None if upper is None else jtu.tree_map(jnp.asarray, upper)
     _check_concrete_bounds(lower, upper)
     if not with_inequalities:
-        return _extremize(
-            objective,
-            x0,
-            args,
-            constraints,
-            solver,
-            multipliers0,
-            max_steps,
-            throw,
-            sense,
+        sol = _extremize(
+            objective, x0, args, constraints, solver, multipliers0, max_steps, sense
         )
-    return _extremize_inequalities(
+        return raise_if_failed(sol, throw)
+    sol = _extremize_inequalities(
         objective,
         x0,
         args,
@@ -460,8 +453,8 @@ def extremize(
         solver,
         multipliers0,
         max_steps,
-        throw,
     )
+    return raise_if_failed(sol, throw)
 
 
 def _check_concrete_bounds(lower, upper) -> None:
@@ -504,7 +497,7 @@ def _check_callables(objective, constraints, x0):
 
 @eqx.filter_jit
 def _extremize(
-    objective, x0, args, constraints, solver, multipliers0, max_steps, throw, sense
+    objective, x0, args, constraints, solver, multipliers0, max_steps, sense
 ):
     check_kkt_solver(Newton() if solver is None else solver, max_steps)
     _check_callables(objective, constraints, x0)
@@ -632,8 +625,6 @@ def _extremize(
         inequality_multipliers=jnp.zeros((0,), dtype),
         active=jnp.zeros((0,), bool),
     )
-    if throw:
-        sol = result.error_if(sol, failed)
     return sol
 
 
@@ -764,7 +755,6 @@ def _extremize_inequalities(
     solver,
     multipliers0,
     max_steps,
-    throw,
 ):
     if solver is None:
         solver = Newton()
@@ -931,6 +921,4 @@ def _extremize_inequalities(
         inequality_multipliers=mu,
         active=active,
     )
-    if throw:
-        sol = result.error_if(sol, failed)
     return sol

@@ -39,7 +39,7 @@ from ._misc import (
     as_traced_args,
     default_float_dtype,
 )
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 from ._solver.newton import AbstractKKTSolver, Newton
 
 
@@ -832,9 +832,10 @@ def solve_functional(
         else default_float_dtype()
     )
     tolerance = _error_tolerance(discretization, rtol, atol, dtype)
-    return _solve_functional(
-        functional, args, discretization, solver, y0, max_steps, throw, tolerance
+    sol = _solve_functional(
+        functional, args, discretization, solver, y0, max_steps, tolerance
     )
+    return raise_if_failed(sol, throw)
 
 
 def _error_tolerance(discretization, rtol, atol, dtype):
@@ -867,7 +868,7 @@ def _error_tolerance(discretization, rtol, atol, dtype):
 
 @eqx.filter_jit
 def _solve_functional(
-    functional, args, discretization, solver, y0, max_steps, throw, tolerance
+    functional, args, discretization, solver, y0, max_steps, tolerance
 ):
     if not isinstance(functional, Functional):
         raise ValueError(
@@ -1068,6 +1069,4 @@ def _solve_functional(
         interval=functional.interval,
         discretization=discretization,
     )
-    if throw:
-        sol = result.error_if(sol, result != RESULTS.successful)
     return sol

@@ -187,8 +187,10 @@ def _nan_derivatives_jvp(primals, tangents):
     total = sum((jnp.sum(leaf) for leaf in leaves), jnp.zeros(()))
 
     def mark(leaf):
-        c = jnp.where(failed, jnp.nan, 0.0).astype(leaf.dtype)
-        return leaf * jnp.where(failed, jnp.nan, 1.0).astype(leaf.dtype) + c * total.astype(leaf.dtype)
+        dtype = leaf.dtype
+        scale = jnp.where(failed, jnp.nan, 1.0).astype(dtype)
+        from_inputs = jnp.where(failed, jnp.nan, 0.0).astype(dtype) * total
+        return leaf * scale + from_inputs.astype(dtype)
 
     return outputs, jtu.tree_map(mark, t_outputs)
 

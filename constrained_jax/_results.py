@@ -177,3 +177,18 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "when minimizing, a minimum or a saddle when maximizing. Start from another "
         "`x0`."
     )
+
+
+def raise_if_failed(sol, throw: bool):
+    """`sol` (any solution with a `result` field), raising at run time where
+    `sol.result` is not successful if `throw`.
+
+    Applied by each public solve *after* its compiled core (which never sees
+    `throw`): so `throw=True` and `throw=False` share one compiled program, and
+    switching between them compiles only this small check. (The check rides on the
+    returned solution: a program that keeps only a derivative drops it, and the NaN
+    derivative of a failed solve is then its refusal.)
+    """
+    if not throw:
+        return sol
+    return sol.result.error_if(sol, sol.result != RESULTS.successful)

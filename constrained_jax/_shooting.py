@@ -35,7 +35,7 @@ from ._functional import (
 )
 from ._implicit import nan_derivatives_if_failed
 from ._misc import as_traced_args, check_max_steps
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 
 
 def _second_derivative(lagrangian_star: Callable, y, yp, x, args):
@@ -93,7 +93,7 @@ def solve_shooting(
         which the Newton iteration needs for its Jacobian).
     """
     args = as_traced_args(args)
-    return _solve_shooting(
+    sol = _solve_shooting(
         functional,
         args,
         jnp.asarray(slope0),
@@ -104,8 +104,8 @@ def solve_shooting(
         atol,
         root_tol,
         max_steps,
-        throw,
     )
+    return raise_if_failed(sol, throw)
 
 
 @eqx.filter_jit
@@ -120,7 +120,6 @@ def _solve_shooting(
     atol,
     root_tol,
     max_steps,
-    throw,
 ):
     if not isinstance(functional, Functional):
         raise ValueError("`functional` must be a `cjax.Functional`.")
@@ -239,6 +238,4 @@ def _solve_shooting(
     sol = nan_derivatives_if_failed(
         sol, (functional, args, slope0, multipliers0), result != RESULTS.successful
     )
-    if throw:
-        sol = result.error_if(sol, result != RESULTS.successful)
     return sol

@@ -32,7 +32,7 @@ from ._misc import (
     inexact_asarray,
     SIMULATE_TOLERANCE,
 )
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 from ._stabilization import AbstractStabilization, project_state, Unstabilized
 from ._system import LagrangianSystem
 from ._variational_integrator import (
@@ -288,7 +288,7 @@ def simulate(
         stepsize_controller, consistency_tol, dtype
     )
     adjoint = default_adjoint(adjoint)
-    return _simulate(
+    traj = _simulate(
         system,
         jnp.asarray(t0, dtype),
         jnp.asarray(t1, dtype),
@@ -305,8 +305,8 @@ def simulate(
         consistency_tol,
         progress_meter,
         max_events,
-        throw,
     )
+    return raise_if_failed(traj, throw)
 
 
 def _check_max_events(system, max_events):
@@ -1538,7 +1538,6 @@ def _simulate(
     consistency_tol,
     progress_meter,
     max_events,
-    throw,
 ):
     system.check(q0, qd0, t0, args)
     start_ok = all_finite((q0, qd0, args, t0, t1))
@@ -1721,13 +1720,8 @@ def _simulate(
         release=run.release,
         events=run.events,
     )
-    # The derivatives of a failed run are NaN (forward and reverse). `throw=True`
-    # raises only where the trajectory itself is used: a program that keeps only a
-    # gradient (`jax.grad` of a loss, under `jax.vmap`) drops the check with the
-    # primal, and must still not get a number.
-    traj = nan_derivatives_if_failed(
+    # The derivatives of a failed run are NaN (forward and reverse): `throw=True`
+    # raises only where the trajectory itself is used (see `raise_if_failed`).
+    return nan_derivatives_if_failed(
         traj, (system, q0, qd0, args, t0, t1), result != RESULTS.successful
     )
-    if throw:
-        traj = result.error_if(traj, result != RESULTS.successful)
-    return traj

@@ -7,6 +7,7 @@ import jax
 import jax.extend as jex
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import constrained_jax as cjax
 from constrained_jax.scenes import pendulum, two_cylinders as cyl2
@@ -131,3 +132,47 @@ def test_equations_traced_once_per_system(monkeypatch):
             )
 
         assert _count_equations(monkeypatch, run, q0, qd0, args) == num_systems
+
+
+def test_throw_does_not_recompile_the_solve():
+    """`throw` is applied after the compiled core of each solve: the same `simulate`
+    with `throw=True` after `throw=False` compiles only the small check (no second
+    copy of the run), and still raises on a failed run."""
+    import logging
+
+    messages = []
+
+    class _Collect(logging.Handler):
+        def emit(self, record):
+            messages.append(record.getMessage())
+
+    handler = _Collect()
+    logger = logging.getLogger("jax")
+    logger.addHandler(handler)
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+
+    def run(throw, max_steps=4096):
+        return cjax.simulate(
+            pendulum.system(),
+            (0.0, 1.3),
+            q0,
+            qd0,
+            args,
+            saveat=cjax.SaveAt(t1=True),
+            max_steps=max_steps,
+            throw=throw,
+        )
+
+    try:
+        with jax.log_compiles():
+            run(False)
+            first = len(messages)
+            run(True)
+    finally:
+        logger.removeHandler(handler)
+    compiled = [m for m in messages[first:] if m.startswith("Finished XLA compilation")]
+    assert not any("_simulate" in m for m in compiled), compiled
+    assert any("_simulate" in m for m in messages[:first])
+    with pytest.raises(Exception, match="max_steps|maximum number of"):
+        run(True, max_steps=3)
