@@ -13,7 +13,7 @@ import constrained_jax as cjax
 from constrained_jax.scenes import pendulum, two_cylinders as cyl2
 
 
-def _run(saveat, max_steps=4096, dt0=None):
+def _run(saveat, max_steps=4096, dt0=None, throw=False):
     args = pendulum.default_args()
     q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
 
@@ -28,7 +28,7 @@ def _run(saveat, max_steps=4096, dt0=None):
             saveat=saveat,
             max_steps=max_steps,
             dt0=dt0,
-            throw=False,
+            throw=throw,
         )
 
     return run, (q0, qd0, args)
@@ -149,30 +149,18 @@ def test_throw_does_not_recompile_the_solve():
     handler = _Collect()
     logger = logging.getLogger("jax")
     logger.addHandler(handler)
-    args = pendulum.default_args()
-    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
-
-    def run(throw, max_steps=4096):
-        return cjax.simulate(
-            pendulum.system(),
-            (0.0, 1.3),
-            q0,
-            qd0,
-            args,
-            saveat=cjax.SaveAt(t1=True),
-            max_steps=max_steps,
-            throw=throw,
-        )
-
+    quiet, inputs = _run(cjax.SaveAt(t1=True))
+    loud, _ = _run(cjax.SaveAt(t1=True), throw=True)
     try:
         with jax.log_compiles():
-            run(False)
+            quiet(*inputs)
             first = len(messages)
-            run(True)
+            loud(*inputs)
     finally:
         logger.removeHandler(handler)
     compiled = [m for m in messages[first:] if m.startswith("Finished XLA compilation")]
     assert not any("_simulate" in m for m in compiled), compiled
     assert any("_simulate" in m for m in messages[:first])
+    out_of_steps, _ = _run(cjax.SaveAt(t1=True), max_steps=3, throw=True)
     with pytest.raises(Exception, match="max_steps|maximum number of"):
-        run(True, max_steps=3)
+        out_of_steps(*inputs)
