@@ -1,6 +1,11 @@
-"""Shared test helpers: tree comparison, finite differences, trace counting."""
+"""Shared test helpers: tree comparison, finite differences, trace counting, a fresh
+Python process."""
 
 import functools as ft
+import os
+import pathlib
+import subprocess
+import sys
 
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -48,3 +53,20 @@ class TraceCounter:
     def __call__(self, *args, **kwargs):
         self.count += 1
         return self.fn(*args, **kwargs)
+
+
+def run_python(code: str, *, timeout: float, **environ) -> subprocess.CompletedProcess:
+    """`code` run by a new Python process that imports this checkout's
+    `constrained_jax` (its folder first on `PYTHONPATH`), with `environ` added to
+    the environment; output captured as text. Raises `subprocess.TimeoutExpired`
+    after `timeout` seconds."""
+    env = dict(os.environ, **environ)
+    root = str(pathlib.Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join([root, env.get("PYTHONPATH", "")])
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )

@@ -13,6 +13,8 @@ from jax.scipy.special import xlogy
 import constrained_jax as cjax
 from constrained_jax.scenes import cylinder_volume as cyl
 
+from .helpers import run_python
+
 
 INF = jnp.inf
 
@@ -632,23 +634,10 @@ def test_large_vmapped_batch_finishes():
     active) finishes and is exact. It used to deadlock XLA's CPU runtime (two
     batched LAPACK factorisations in one loop body); run in a subprocess with a
     time limit, so that a regression fails instead of hanging the suite."""
-    import os
-    import pathlib
     import subprocess
-    import sys
 
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(
-        [str(pathlib.Path(cjax.__file__).parents[1]), env.get("PYTHONPATH", "")]
-    )
     try:
-        done = subprocess.run(
-            [sys.executable, "-c", _BATCH_SCRIPT],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=240,
-        )
+        done = run_python(_BATCH_SCRIPT, timeout=240)
     except subprocess.TimeoutExpired:
         pytest.fail("jit(vmap(extremize)) over 300 problems did not finish in 240 s")
     assert done.returncode == 0, done.stderr[-3000:]

@@ -26,9 +26,6 @@
 """
 
 import json
-import os
-import subprocess
-import sys
 import textwrap
 import warnings
 
@@ -41,6 +38,8 @@ import pytest
 
 import constrained_jax as cjax
 from constrained_jax.scenes import pendulum, two_cylinders as cyl
+
+from .helpers import run_python
 
 
 TIGHT = diffrax.PIDController(rtol=1e-11, atol=1e-11)
@@ -379,16 +378,7 @@ _FLOAT32_SCRIPT = textwrap.dedent(
 
 @pytest.fixture(scope="module")
 def float32_run():
-    env = dict(os.environ, JAX_ENABLE_X64="0")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run(
-        [sys.executable, "-c", _FLOAT32_SCRIPT],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=1500,
-    )
+    proc = run_python(_FLOAT32_SCRIPT, timeout=1500, JAX_ENABLE_X64="0")
     lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT")]
     assert proc.returncode == 0 and lines, proc.stderr[-3000:]
     return json.loads(lines[-1][len("RESULT") :])
