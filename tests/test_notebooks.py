@@ -11,6 +11,8 @@ import pathlib
 
 import pytest
 
+from .conftest import USER_XLA_FLAGS
+
 
 nbclient = pytest.importorskip("nbclient")
 nbformat = pytest.importorskip("nbformat")
@@ -36,4 +38,8 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
         kernel_name="python3",
         resources={"metadata": {"path": str(tmp_path)}},
     )
-    client.execute(env=dict(os.environ))
+    # The kernel compiles with XLA's default code generator (the one users run), not
+    # the faster-compiling one the rest of the suite uses (`conftest.py`).
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = USER_XLA_FLAGS
+    client.execute(env=env)
