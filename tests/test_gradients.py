@@ -114,6 +114,11 @@ def _pendulum_x(t1, g, throw, adjoint=None):
     return traj.q[-1, 0], traj.result
 
 
+# (Module-level: both parametrizations share their programs.)
+_pendulum_results = jax.jit(jax.vmap(lambda t1, g: _pendulum_x(t1, g, False)[1]))
+_pendulum_x_value = jax.jit(lambda g: _pendulum_x(0.2, g, False)[0])
+
+
 @pytest.mark.parametrize("throw", [False, True])
 def test_failed_run_has_nan_gradient(throw):
     """A run that spends its step budget has no derivative: `jax.grad` gives NaN,
@@ -127,13 +132,11 @@ def test_failed_run_has_nan_gradient(throw):
     grads = np.asarray(grad(t1s, g))
     assert np.isnan(grads[1])
     assert np.isfinite(grads[0])
-    results = jax.jit(jax.vmap(lambda t1, g: _pendulum_x(t1, g, False)[1]))(t1s, g)
-    codes = np.asarray(results._value)
+    codes = np.asarray(_pendulum_results(t1s, g)._value)
     assert codes[0] == cjax.RESULTS.successful._value
     assert codes[1] == cjax.RESULTS.max_steps_reached._value
-    value = jax.jit(lambda g: _pendulum_x(0.2, g, False)[0])
     step = 1e-4
-    fd = (value(9.81 + step) - value(9.81 - step)) / (2 * step)
+    fd = (_pendulum_x_value(9.81 + step) - _pendulum_x_value(9.81 - step)) / (2 * step)
     np.testing.assert_allclose(grads[0], fd, rtol=1e-5)
     # Forward mode too (`jax.jvp` keeps the primal, so `throw=True` raises there).
     forward = lambda g: _pendulum_x(5.0, g, throw, diffrax.ForwardMode())[0]
