@@ -40,6 +40,10 @@ round-off). Forward-mode autodiff (`jax.jvp`, `jax.jacfwd`) needs
 `adjoint=diffrax.ForwardMode()`, as with diffrax's own reverse-mode adjoints.
 """
 
+import functools
+import inspect
+import types
+
 import diffrax
 import equinox as eqx
 import jax
@@ -75,7 +79,11 @@ class ForwardJacobianAdjoint(diffrax.AbstractAdjoint):
     fallback: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint()
 
     def loop(self, **kwargs):
-        dynamic, static = eqx.partition(kwargs, eqx.is_inexact_array)
+        # (Integer and boolean arrays are inputs too where nothing else is closed
+        # over; when closure conversion runs, they stay in `static`, as it needs.)
+        convert = may_hold_tracers(eqx.filter(kwargs, eqx.is_array, inverse=True))
+        is_input = eqx.is_inexact_array if convert else eqx.is_array
+        dynamic, static = eqx.partition(kwargs, is_input)
 
         def forward(dynamic_):
             return diffrax.ForwardMode().loop(**eqx.combine(dynamic_, static))
@@ -83,13 +91,94 @@ class ForwardJacobianAdjoint(diffrax.AbstractAdjoint):
         def reverse(dynamic_):
             return self.fallback.loop(**eqx.combine(dynamic_, static))
 
-        # Closure conversion makes every array the loop closes over (in the vector
-        # field, the events) an input, so that `perturbed` sees it.
-        forward = eqx.filter_closure_convert(forward, dynamic)
-        reverse = eqx.filter_closure_convert(reverse, dynamic)
+        if convert:
+            # Closure conversion makes every array the loop closes over (in the
+            # vector field, the events: a user's Lagrangian closing over a traced
+            # parameter, say) an input, so that `perturbed` sees it. It traces both
+            # loops now.
+            forward = eqx.filter_closure_convert(forward, dynamic)
+            reverse = eqx.filter_closure_convert(reverse, dynamic)
+        # Else the loops close over no traced value (the library passes its own
+        # arrays as leaves: `jax.tree_util.Partial` events, modules), and each is
+        # traced only where it runs: `forward` once, `reverse` only when the
+        # fallback differentiates. (Closure conversion traced both, each time: a
+        # third of the first call's tracing, `benchmarks/compile_time.py`.)
         state_size = sum(np.size(y) for y in jtu.tree_leaves(kwargs["init_state"].y))
         most = min(self.max_tangents, self.max_tangent_size // max(state_size, 1))
         return _loop((forward, reverse, dynamic), most)
+
+
+# Objects that hold no JAX value (checked by type, not searched).
+_INERT = (
+    bool,
+    int,
+    float,
+    complex,
+    str,
+    bytes,
+    type(None),
+    type(Ellipsis),
+    type,
+    types.ModuleType,
+    types.CodeType,
+    np.ndarray,
+    np.generic,
+    np.dtype,
+    inspect.Signature,
+    jtu.PyTreeDef,
+    jax.Array,  # (concrete: a tracer is caught first)
+)
+
+
+def may_hold_tracers(tree, *, max_depth: int = 64) -> bool:
+    """Whether a JAX tracer may be reachable from the non-array parts `tree` of a
+    solve (functions and their closures, `functools.partial`, bound methods,
+    containers, objects' attributes). `True` as soon as one is found, and for
+    anything it cannot look into (conservative: the caller then closure-converts,
+    which is always correct)."""
+    seen: set[int] = set()
+    stack = [(tree, 0)]
+    while stack:
+        obj, depth = stack.pop()
+        if isinstance(obj, jax.core.Tracer):
+            return True
+        if isinstance(obj, _INERT) or id(obj) in seen:
+            continue
+        if depth > max_depth:
+            return True
+        seen.add(id(obj))
+        children: list = []
+        if isinstance(obj, list | tuple | set | frozenset):
+            children = list(obj)
+        elif isinstance(obj, dict):
+            children = [*obj.keys(), *obj.values()]
+        elif isinstance(obj, functools.partial):
+            children = [obj.func, obj.args, obj.keywords]
+        elif isinstance(obj, types.FunctionType):
+            for cell in obj.__closure__ or ():
+                try:
+                    children.append(cell.cell_contents)
+                except ValueError:  # (an empty cell)
+                    pass
+            children += [obj.__defaults__, obj.__kwdefaults__]
+        elif isinstance(obj, types.MethodType):
+            children = [obj.__self__, obj.__func__]
+        elif isinstance(obj, types.BuiltinFunctionType | types.BuiltinMethodType):
+            children = [getattr(obj, "__self__", None)]
+        else:
+            wrapped = getattr(obj, "__wrapped__", None)
+            attributes = getattr(obj, "__dict__", None)
+            slots = [
+                getattr(obj, name)
+                for cls in type(obj).__mro__
+                for name in getattr(cls, "__slots__", ())
+                if isinstance(name, str) and hasattr(obj, name)
+            ]
+            if wrapped is None and attributes is None and not slots:
+                return True  # (opaque: may hold anything)
+            children = [wrapped, *(attributes or {}).values(), *slots]
+        stack.extend((child, depth + 1) for child in children)
+    return False
 
 
 @eqx.filter_custom_vjp

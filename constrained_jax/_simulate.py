@@ -591,28 +591,37 @@ def _diverged_condition(system, q_ref, t_ref, args):
     Checked by diffrax at every accepted step (fixed steps included, where diffrax
     checks nothing). The residuals are scaled by the row norms of `A` at `q_ref`, so
     that the bound reads as a distance and does not depend on how `G` is written.
+
+    (A `jax.tree_util.Partial`, not a closure: the row norms are a leaf of the event,
+    so the solve's adjoint sees no closed-over array, see `_adjoint.py`.)
     """
     jac = system.constraint_jacobian(q_ref, t_ref, args)
-    num_rows = jac.shape[0]
-    if num_rows:
+    row_norms = None
+    if jac.shape[0]:
         tiny = jnp.finfo(q_ref.dtype).tiny
         row_norms = jnp.maximum(jnp.linalg.norm(jac, axis=1), tiny)
+    return jax.tree_util.Partial(_diverged, system, row_norms)
 
-    def condition(t, y, args, **kwargs):
-        del kwargs
-        q, qd = y
-        bad = jnp.invert(all_finite((q, qd)))
-        if num_rows:
-            position = system.position_residual(q, t, args) / row_norms
-            velocity = system.velocity_residual(q, qd, t, args) / row_norms
-            bad = (
-                bad
-                | jnp.any(jnp.abs(position) > _DIVERGED * (1 + jnp.max(jnp.abs(q))))
-                | jnp.any(jnp.abs(velocity) > _DIVERGED * (1 + jnp.max(jnp.abs(qd))))
-            )
-        return bad
 
-    return condition
+def _diverged(system, row_norms, t, y, args, **kwargs):
+    del kwargs
+    q, qd = y
+    bad = jnp.invert(all_finite((q, qd)))
+    if row_norms is not None:
+        position = system.position_residual(q, t, args) / row_norms
+        velocity = system.velocity_residual(q, qd, t, args) / row_norms
+        bad = (
+            bad
+            | jnp.any(jnp.abs(position) > _DIVERGED * (1 + jnp.max(jnp.abs(q))))
+            | jnp.any(jnp.abs(velocity) > _DIVERGED * (1 + jnp.max(jnp.abs(qd))))
+        )
+    return bad
+
+
+def _gap_below(group, delta, t, y, args, **kwargs):
+    """Re-contact condition: the group's gap plus `delta` (falls through zero)."""
+    del kwargs
+    return group.gap(y[0], t, args) + delta
 
 
 class _WatchedSolver(AbstractForwardingSolver):
@@ -1104,7 +1113,7 @@ def _release_run(phase, system, found, t0, t1, q0, qd0, args, ts, adaptive) -> _
         recontact_event = diffrax.Event(
             (
                 diverged_free,
-                lambda t, y, args, **kw: group.gap(y[0], t, args) + delta,
+                jax.tree_util.Partial(_gap_below, group, delta),
             ),
             root_finder=_Illinois(rtol=root_tol, atol=root_tol),
         )
