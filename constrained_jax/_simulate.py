@@ -1302,7 +1302,7 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
             jnp.minimum(modes.groups[i].gap(q, t_start, args), 0) - delta for i in free
         ]
 
-        def event_values(t, y):
+        def event_values(t, y, args, offsets):
             """The pushing multipliers of the attached groups, then the gaps (less
             their offsets) of the free ones: all start >= 0, and the first to fall
             through zero is the next event."""
@@ -1315,15 +1315,19 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
                 parts.append(jnp.reshape(gap - offset, (1,)))
             return jnp.concatenate(parts)
 
-        def next_event(t, y, args, **kwargs):
+        def next_event(offsets, t, y, args, **kwargs):
             # One condition, the smallest value: diffrax keeps only the first
             # condition (in order) of those that change sign in a step, which need
             # not be the first in time.
-            del args, kwargs
-            return jnp.min(event_values(t, y))
+            del kwargs
+            return jnp.min(event_values(t, y, args, offsets))
 
+        # (The offsets are a leaf of the event, not closed over: see `_adjoint.py`.)
         event = diffrax.Event(
-            (next_event, _diverged_condition(sys_m, q, t_start, args)),
+            (
+                jax.tree_util.Partial(next_event, offsets),
+                _diverged_condition(sys_m, q, t_start, args),
+            ),
             root_finder=root_finder,
         )
 
@@ -1354,7 +1358,9 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
             )
             # Which event: 0 none, else 1 + the index of the smallest value (a
             # release of attached[j], or an impact of free[j - len(attached)]).
-            which = jnp.argmin(event_values(one.t_end, (one.q_end, one.qd_end)))
+            which = jnp.argmin(
+                event_values(one.t_end, (one.q_end, one.qd_end), args, offsets)
+            )
             kind = jnp.where(stopped & jnp.invert(diverged), 1 + which, 0)
             in_phase = (ts >= c["t"]) & (ts <= one.t_end)
             saved = (
