@@ -139,23 +139,30 @@ def _jit_solve_accelerations(system, q, qd, t, args, bias_correction):
 
 
 def _field_and_multipliers(system, stabilization):
-    """`(t, (q, qdot), args) -> ((qdot, qddot), lambda)`: one KKT solve."""
+    """`(t, (q, qdot), args) -> ((qdot, qddot), lambda)`: one KKT solve.
 
-    def field(t, y, args):
-        q, qd = y
-        correction = stabilization.bias_correction(system, q, qd, t, args)
-        qdd, lam, singular = _solve_accelerations(system, q, qd, t, args, correction)
-        # A singular KKT matrix makes the step fail (NaN rejected by the controller);
-        # the status is recovered afterwards at the saved states.
-        qdd = jnp.where(singular, jnp.nan, qdd)
-        return (qd, qdd), lam
+    (A `jax.tree_util.Partial`, not a closure: the arrays of `system`, a Lagrangian
+    module's parameters say, are leaves of the vector field, so the solve's adjoint
+    sees no closed-over array and traces the solve once, see `_adjoint.py`.)"""
+    return jax.tree_util.Partial(_field, system, stabilization)
 
-    return field
+
+def _field(system, stabilization, t, y, args):
+    q, qd = y
+    correction = stabilization.bias_correction(system, q, qd, t, args)
+    qdd, lam, singular = _solve_accelerations(system, q, qd, t, args, correction)
+    # A singular KKT matrix makes the step fail (NaN rejected by the controller);
+    # the status is recovered afterwards at the saved states.
+    qdd = jnp.where(singular, jnp.nan, qdd)
+    return (qd, qdd), lam
 
 
 def _vector_field(system, stabilization):
-    field = _field_and_multipliers(system, stabilization)
-    return lambda t, y, args: field(t, y, args)[0]
+    return jax.tree_util.Partial(_derivative, system, stabilization)
+
+
+def _derivative(system, stabilization, t, y, args):
+    return _field(system, stabilization, t, y, args)[0]
 
 
 def simulate(

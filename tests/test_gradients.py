@@ -5,6 +5,7 @@ event against the closed form of the detachment time."""
 import functools
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -191,13 +192,26 @@ def test_may_hold_tracers_finds_closed_over_values():
     }
 
 
-def _closed_over_g(g, adjoint, closed: bool):
+class _PendulumLagrangian(eqx.Module):
+    """The pendulum's Lagrangian as a module holding `g` (an array field)."""
+
+    g: jax.Array
+
+    def __call__(self, q, qd, t, args):
+        return 0.5 * args["m"] * jnp.dot(qd, qd) - args["m"] * self.g * q[1]
+
+
+def _closed_over_g(g, adjoint, closed):
     """`x(t1)` of the pendulum released at 1 rad, with `g` closed over by the
-    Lagrangian (`closed`) or passed through `args`."""
+    Lagrangian (`closed=True`), a field of a Lagrangian module (`"module"`) or
+    passed through `args` (`False`)."""
     from constrained_jax.scenes import pendulum as pend
 
     args = pend.default_args()
-    if closed:
+    if closed == "module":
+        rod = pend.system().constraints
+        system = cjax.LagrangianSystem(_PendulumLagrangian(g), constraints=rod)
+    elif closed:
 
         def lagrangian(q, qd, t, args_):
             return 0.5 * args_["m"] * jnp.dot(qd, qd) - args_["m"] * g * q[1]
@@ -225,12 +239,15 @@ def test_gradient_through_a_closed_over_parameter():
     the adjoint finds the tracer in the closure and converts it to an input, so the
     gradient is the one with the value in `args` (which matches finite
     differences), in forward mode and by the fallback (`max_tangents=0`; the same
-    fallback with `args` is checked in `test_kkt_derivative.py`)."""
+    fallback with `args` is checked in `test_kkt_derivative.py`). The value as an
+    array field of a Lagrangian module is a leaf of the vector field (no
+    conversion): the same gradient."""
     fallback = ForwardJacobianAdjoint(max_tangents=0)
     closed = jax.jit(jax.grad(lambda g: _closed_over_g(g, None, True)))(9.81)
     closed_fallback = jax.jit(jax.grad(lambda g: _closed_over_g(g, fallback, True)))(
         9.81
     )
+    module = jax.jit(jax.grad(lambda g: _closed_over_g(g, None, "module")))(9.81)
     passed = jax.jit(jax.grad(lambda g: _closed_over_g(g, None, False)))(9.81)
     value = jax.jit(lambda g: _closed_over_g(g, None, False))
     h = 1e-4
@@ -239,3 +256,4 @@ def test_gradient_through_a_closed_over_parameter():
     np.testing.assert_allclose(passed, fd, rtol=1e-6)
     np.testing.assert_allclose(closed, passed, rtol=1e-10)
     np.testing.assert_allclose(closed_fallback, passed, rtol=1e-10)
+    np.testing.assert_allclose(module, passed, rtol=1e-10)
