@@ -295,6 +295,9 @@ def simulate(
         stepsize_controller, consistency_tol, dtype
     )
     adjoint = default_adjoint(adjoint)
+    # A traced step: another `dt0` (a fixed-step convergence study, a sweep) reuses
+    # the compiled program.
+    dt0 = None if dt0 is None else jnp.asarray(dt0, dtype)
     traj = _simulate(
         system,
         jnp.asarray(t0, dtype),

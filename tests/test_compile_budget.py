@@ -134,10 +134,8 @@ def test_equations_traced_once_per_system(monkeypatch):
         assert _count_equations(monkeypatch, run, q0, qd0, args) == num_systems
 
 
-def test_throw_does_not_recompile_the_solve():
-    """`throw` is applied after the compiled core of each solve: the same `simulate`
-    with `throw=True` after `throw=False` compiles only the small check (no second
-    copy of the run), and still raises on a failed run."""
+def _compile_messages(*calls):
+    """JAX's compile-log messages during each of `calls` (one list per call)."""
     import logging
 
     messages = []
@@ -149,18 +147,51 @@ def test_throw_does_not_recompile_the_solve():
     handler = _Collect()
     logger = logging.getLogger("jax")
     logger.addHandler(handler)
-    quiet, inputs = _run(cjax.SaveAt(t1=True))
-    loud, _ = _run(cjax.SaveAt(t1=True), throw=True)
+    out = []
     try:
         with jax.log_compiles():
-            quiet(*inputs)
-            first = len(messages)
-            loud(*inputs)
+            for call in calls:
+                start = len(messages)
+                call()
+                out.append(
+                    [
+                        m
+                        for m in messages[start:]
+                        if m.startswith("Finished XLA compilation")
+                    ]
+                )
     finally:
         logger.removeHandler(handler)
-    compiled = [m for m in messages[first:] if m.startswith("Finished XLA compilation")]
-    assert not any("_simulate" in m for m in compiled), compiled
-    assert any("_simulate" in m for m in messages[:first])
+    return out
+
+
+def test_throw_does_not_recompile_the_solve():
+    """`throw` is applied after the compiled core of each solve: the same `simulate`
+    with `throw=True` after `throw=False` compiles only the small check (no second
+    copy of the run), and still raises on a failed run."""
+    quiet, inputs = _run(cjax.SaveAt(t1=True))
+    loud, _ = _run(cjax.SaveAt(t1=True), throw=True)
+    first, second = _compile_messages(lambda: quiet(*inputs), lambda: loud(*inputs))
+    assert any("_simulate" in m for m in first), first
+    assert not any("_simulate" in m for m in second), second
     out_of_steps, _ = _run(cjax.SaveAt(t1=True), max_steps=3, throw=True)
     with pytest.raises(Exception, match="max_steps|maximum number of"):
         out_of_steps(*inputs)
+
+
+def test_another_step_size_does_not_recompile():
+    """`dt0` is traced: a second step size reuses the compiled `simulate` (a
+    convergence study or a sweep over `dt0` compiles once), and gives another
+    answer (it is used)."""
+    coarse, inputs = _run(cjax.SaveAt(t1=True), dt0=0.01)
+    fine, _ = _run(cjax.SaveAt(t1=True), dt0=0.02)
+    out = {}
+    first, second = _compile_messages(
+        lambda: out.setdefault("coarse", coarse(*inputs)),
+        lambda: out.setdefault("fine", fine(*inputs)),
+    )
+    assert any("_simulate" in m for m in first), first
+    assert not any("_simulate" in m for m in second), second
+    for traj in out.values():
+        assert traj.result == cjax.RESULTS.successful
+    assert out["coarse"].stats["num_steps"] != out["fine"].stats["num_steps"]
