@@ -49,3 +49,26 @@ def getkey():
         return subkey
 
     return _getkey
+
+
+# The files whose tests are long single items (subprocesses, kernels, the tour, big
+# reverse-mode programs) run first, whole files together (module fixtures stay set
+# up once), so that the two xdist workers do not end on one long item while the other
+# idles (longest first: the classic schedule for balancing).
+_LONG_FIRST = (
+    "test_notebooks.py",
+    "test_sharp_edges_gauge_float32.py",
+    "test_cli.py",
+    "test_impacts.py",
+    "test_kkt_derivative.py",
+    "test_release.py",
+    "test_gradients.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    def rank(item):
+        name = item.path.name
+        return _LONG_FIRST.index(name) if name in _LONG_FIRST else len(_LONG_FIRST)
+
+    items.sort(key=rank)  # (stable: the order within each file is kept)
