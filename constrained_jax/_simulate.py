@@ -205,6 +205,8 @@ def simulate(
     - `stabilization`: `Unstabilized()`, `Baumgarte(alpha, beta)` or `Projection()`.
     - `stepsize_controller`, `dt0`, `max_steps`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
+        `dt0` is traced (another step size reuses the compiled program);
+        `max_steps` is static (it sizes the buffers).
         `stepsize_controller=None` (default) is
         `diffrax.PIDController(rtol=tol, atol=tol)` with `tol` following the dtype
         of `q0`: `1e-8` in float64, `100 eps = 1.2e-5` in float32 (where `1e-8`
