@@ -371,6 +371,11 @@ def _check_time_grid(t0, t1, ts, dt0, unilateral):
             "`cjax.Unilateral` constraint are defined forwards in time only (a contact "
             "force that may only push, watched as time increases). Pass `t0 <= t1`."
         )
+    if dt0 is not None and not (np.isfinite(dt0) and dt0 != 0):
+        raise ValueError(
+            f"`dt0 = {dt0}`: the first step must be finite and nonzero (or `None`, "
+            "for an adaptive controller to choose it)."
+        )
     if dt0 is not None and t1 != t0 and np.sign(dt0) != np.sign(t1 - t0):
         raise ValueError(
             f"`dt0 = {dt0}` points away from `t1`: it must have the sign of "

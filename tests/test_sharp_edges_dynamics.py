@@ -279,11 +279,15 @@ def test_bad_save_times_are_refused(pend, ts):
     assert _run_with_saves(args, q0, qd0, ts).result == cjax.RESULTS.invalid_time_grid
 
 
-def test_dt0_pointing_away_is_refused(pend):
+@pytest.mark.parametrize(
+    "dt0, message",
+    [(-0.1, "points away"), (0.0, "finite and nonzero"), (float("nan"), "finite")],
+)
+def test_dt0_pointing_away_or_not_a_step_is_refused(pend, dt0, message):
     system, args, q0, qd0 = pend
-    with pytest.raises(ValueError, match="dt0"):
+    with pytest.raises(ValueError, match=message):
         cjax.simulate(
-            system, (0.0, 1.0), q0, qd0, args, stepsize_controller=FIXED, dt0=-0.1
+            system, (0.0, 1.0), q0, qd0, args, stepsize_controller=FIXED, dt0=dt0
         )
 
 
