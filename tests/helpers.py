@@ -58,9 +58,14 @@ class TraceCounter:
 def run_python(code: str, *, timeout: float, **environ) -> subprocess.CompletedProcess:
     """`code` run by a new Python process that imports this checkout's
     `constrained_jax` (its folder first on `PYTHONPATH`), with `environ` added to
-    the environment; output captured as text. Raises `subprocess.TimeoutExpired`
-    after `timeout` seconds."""
-    env = dict(os.environ, **environ)
+    the environment (a value `None` removes the variable); output captured as text.
+    Raises `subprocess.TimeoutExpired` after `timeout` seconds."""
+    env = dict(os.environ)
+    for name, value in environ.items():
+        if value is None:
+            env.pop(name, None)
+        else:
+            env[name] = value
     root = str(pathlib.Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join([root, env.get("PYTHONPATH", "")])
     return subprocess.run(

@@ -2,16 +2,15 @@
 the user's cache directory, the switch that turns it off, and a second process that
 reads the entry the first one wrote."""
 
-import os
 import pathlib
-import subprocess
-import sys
 
 import jax
 import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
 import constrained_jax as cjax
+
+from .helpers import run_python
 
 
 @pytest.fixture
@@ -83,13 +82,11 @@ print(path, len(hits))
 def _python(code, tmp_path) -> str:
     """The standard output of `code` run by a new Python process, with this
     checkout's `constrained_jax` and `XDG_CACHE_HOME=tmp_path`."""
-    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path))
-    env.pop("CONSTRAINED_JAX_COMPILATION_CACHE", None)
-    env["PYTHONPATH"] = os.pathsep.join(
-        [str(pathlib.Path(cjax.__file__).parents[1]), env.get("PYTHONPATH", "")]
-    )
-    run = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env
+    run = run_python(
+        code,
+        timeout=600,
+        XDG_CACHE_HOME=str(tmp_path),
+        CONSTRAINED_JAX_COMPILATION_CACHE=None,
     )
     assert run.returncode == 0, run.stderr
     return run.stdout

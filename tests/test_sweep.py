@@ -18,6 +18,8 @@ import pytest
 
 import constrained_jax as cjax
 
+from .helpers import run_python
+
 
 ROOT = pathlib.Path(__file__).parents[1]
 # One CPU device, named explicitly: the same device in this process and in the
@@ -155,15 +157,8 @@ def test_typed_key_outputs_are_refused():
 
 
 def _run(script: str, *, env_extra=None, timeout=240) -> subprocess.CompletedProcess:
-    env = dict(os.environ, JAX_PLATFORMS="cpu", TQDM_DISABLE="1", **(env_extra or {}))
-    return subprocess.run(
-        [sys.executable, "-c", script],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    environ = dict(JAX_PLATFORMS="cpu", TQDM_DISABLE="1", **(env_extra or {}))
+    return run_python(script, timeout=timeout, **environ)
 
 
 _PRELUDE = """
