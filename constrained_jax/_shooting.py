@@ -27,6 +27,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike
 
 from ._custom_types import Args
+from ._diffrax_t1_floor import diffeqsolve
 from ._discretization import Chebyshev
 from ._functional import (
     Functional,
@@ -184,7 +185,7 @@ def _solve_shooting(
             jnp.zeros((k,), dtype),
             jnp.zeros((), dtype),
         )
-        return diffrax.diffeqsolve(
+        return diffeqsolve(
             term,
             ode_solver,
             xl,

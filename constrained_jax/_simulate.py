@@ -22,6 +22,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._adjoint import default_adjoint
 from ._contact import build_modes, Events, find_unilaterals, impact
+from ._diffrax_t1_floor import diffeqsolve
 from ._implicit import nan_derivatives_if_failed
 from ._misc import (
     all_finite,
@@ -823,7 +824,7 @@ def _run_phase(
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
         subs.append(diffrax.SubSaveAt(ts=ts))
-    sol = diffrax.diffeqsolve(
+    sol = diffeqsolve(
         terms,
         solver,
         t0,

@@ -3,6 +3,7 @@
 import diffrax
 import equinox as eqx
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -389,3 +390,63 @@ def test_variational_integrator_refuses_a_progress_meter():
         cjax.simulate(
             pendulum.system(), (0.0, 1.0), q0, qd0, args, progress_meter=meter, **vi
         )
+
+
+def _count_primitive(jaxpr, name):
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == name
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            count += _count_primitive(sub, name)
+    return count
+
+
+def test_t1_floor_is_bitwise_diffrax():
+    """diffrax's `t1 - 100 ULP` floor (100 chained `prevbefore`s) comes out of the
+    library's scanned chain bit for bit, at the edges of the floating-point range too,
+    under `jit`, `vmap` and `jvp`; and the program of a `simulate` with a traced `t1`
+    holds a loop, not 100 unrolled `nextafter`s."""
+    import equinox.internal as eqxi
+    from diffrax import _integrate
+
+    from constrained_jax import _diffrax_t1_floor as floor
+
+    assert floor.active(), "the pinned diffrax should get the scanned t1 floor"
+
+    def chain(prevbefore):
+        def fn(t):
+            for _ in range(100):
+                t = prevbefore(t)
+            return t
+
+        return fn
+
+    tiny = np.finfo(np.float64).tiny
+    edges = [0.0, -0.0, 1.0, -1.0, 0.8, 3e-308, 5e-324, tiny, -tiny, 1e300]
+    edges += [np.finfo(np.float64).max, np.inf, -np.inf, np.nan, 2.0**52, 1 + 2**-52]
+    for dtype, view in ((np.float64, np.int64), (np.float32, np.int32)):
+        with np.errstate(over="ignore"):  # float64's max is inf in float32
+            x = jnp.asarray(np.asarray(edges, np.float64).astype(dtype))
+        want = jax.jit(jax.vmap(chain(eqxi.prevbefore)))(x)
+        got = jax.jit(jax.vmap(chain(floor.prevbefore)))(x)
+        np.testing.assert_array_equal(
+            np.asarray(got).view(view), np.asarray(want).view(view)
+        )
+        for xi in x[:6]:
+            assert jax.jit(chain(floor.prevbefore))(xi) == jax.jit(
+                chain(eqxi.prevbefore)
+            )(xi)
+    value, tangent = jax.jvp(chain(floor.prevbefore), (jnp.asarray(0.8),), (1.0,))
+    assert value == chain(eqxi.prevbefore)(jnp.asarray(0.8)) and tangent == 1.0
+
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+
+    def run(t1):
+        return cjax.simulate(
+            pendulum.system(), (0.0, t1), q0, qd0, args, saveat=cjax.SaveAt(t1=True)
+        ).q
+
+    jaxpr = jax.make_jaxpr(run)(jnp.asarray(1.0)).jaxpr
+    assert _count_primitive(jaxpr, "nextafter") < 10
+    assert _integrate.eqxi is eqxi  # diffrax is left as it was
