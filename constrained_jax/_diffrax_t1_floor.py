@@ -10,15 +10,17 @@ at which it rounds a step to `t1` as
 
 For a traced `t1` (every `simulate` whose end time is an array, e.g. under `jax.vmap`
 or from a detachment time) that is 100 chained `nextafter`s, about 1,500 scalar HLO
-instructions that XLA cannot fold: 0.5-0.7 s of the XLA compile of the tour's
-pendulum and release programs (`benchmarks/compile_time.py`, (c) 1.52 -> 1.04 s and (b)
-4.46 -> 3.74 s). Here the first of the 100 calls computes all 100 values by a
-`lax.scan` of the same `prevbefore` (one small loop) and every call returns its own
-element, recognising the chain by the identity of its input, the previous call's
-output; anything else is an ordinary `prevbefore` chain of its own. The values are
-those of diffrax's loop, bit for bit (the same operations, run in a loop; checked in
-`tests/test_simulate.py::test_t1_floor_is_bitwise_diffrax`), and their derivative is
-`prevbefore`'s (the identity).
+instructions that XLA cannot fold: 0.3-0.7 s of the XLA compile of the tour's
+pendulum and release programs (`benchmarks/compile_time.py`, (c) 1.37-1.43 -> 1.02-1.04
+s and (b) 4.5-4.8 -> 3.7-4.0 s). Here the 100th call, recognised by the identity of
+its input (the 99th call's output, which was the 98th's ...), returns `prevbefore`
+applied 100 times to the first call's input by a `lax.fori_loop` (one small loop);
+the 99 calls before it return plain `prevbefore`s, which nothing then uses and `jit`
+drops. Every call's value is diffrax's, bit for bit (the same operations; checked in
+`tests/test_simulate.py::test_t1_floor_is_bitwise_diffrax`), and the derivative is
+`prevbefore`'s (the identity). (A `lax.scan` that also returned the 99 intermediate
+values made the pendulum's run 10 % slower; the loop that returns only the last one
+does not, within this machine's noise.)
 
 Scoped: the replacement is installed on `diffrax._integrate` (a private module; its
 module-level name `eqxi`) only while one of this library's solves is being traced, and
@@ -45,28 +47,25 @@ _depth = 0
 
 
 def _chain(x):
-    def step(y, _):
-        y = eqxi.prevbefore(y)
-        return y, y
-
-    _, ys = jax.lax.scan(step, x, None, length=_LENGTH)
-    return ys
+    return jax.lax.fori_loop(0, _LENGTH, lambda _, y: eqxi.prevbefore(y), x)
 
 
 def prevbefore(x):
-    """`eqxi.prevbefore(x)`; consecutive calls on each other's outputs are served from
-    one scanned chain of `_LENGTH` values."""
+    """`eqxi.prevbefore(x)`. The `_LENGTH`-th of consecutive calls, each on the
+    previous one's output, returns `prevbefore` applied `_LENGTH` times to the first
+    one's input by a loop: the same value, and the unrolled calls before it are left
+    unused, for XLA to remove."""
     if not isinstance(x, jax.core.Tracer):
         return eqxi.prevbefore(x)  # a constant: computed now, or folded by XLA
     last = getattr(_state, "last", None)
     if last is not None and last[0] is x:
-        _, ys, k = last
-        k = k + 1
+        _, start, k = last
     else:
-        ys, k = _chain(x), 0
-    out = ys[k]
-    # Forget the chain once it is used up (no tracer is kept past its trace).
-    _state.last = (out, ys, k) if k + 1 < _LENGTH else None
+        start, k = x, 0
+    k = k + 1
+    out = _chain(start) if k == _LENGTH else eqxi.prevbefore(x)
+    # Forget the chain once it is complete (no tracer is kept past its trace).
+    _state.last = (out, start, k) if k < _LENGTH else None
     return out
 
 

@@ -511,7 +511,7 @@ class _IllinoisState(eqx.Module):
     t: Float[Array, ""]
     f: Float[Array, ""]
     diff: Float[Array, ""]
-    first: Bool[Array, ""]
+    stage: Int[Array, ""]  # 0: evaluate `lower`, 1: `upper`, 2: secant steps
 
 
 class _Illinois(optx.AbstractRootFinder):
@@ -521,13 +521,14 @@ class _Illinois(optx.AbstractRootFinder):
     Derivative-free (Newton would differentiate the KKT solve along the
     interpolation: a copy of its derivative in the program for nothing), and never
     leaves the bracket `[lower, upper]` that diffrax passes in `options`. The event
-    function is evaluated at two points per step (the bracket's ends at the first
-    step, the new iterate twice after), so that it is traced once. It stops as
-    `optx.Newton` does, when the last step is below `atol + rtol |t|` and the value
-    below `atol`, or when the bracket has shrunk to round-off; convergence is
-    superlinear (order about 1.44), so the root is at round-off when it stops.
-    diffrax zeroes all event values but the triggered one's: their sum is the
-    function whose root is found.
+    function is evaluated once per step, at one point (the bracket's ends at the first
+    two steps, the new iterate after), so that it is traced once and not batched (a
+    `jax.vmap` over two points would turn the `lax.cond`s of the KKT solve inside it
+    into selects that run, and compile, both branches). It stops as `optx.Newton`
+    does, when the last step is below `atol + rtol |t|` and the value below `atol`, or
+    when the bracket has shrunk to round-off; convergence is superlinear (order about
+    1.44), so the root is at round-off when it stops. diffrax zeroes all event values
+    but the triggered one's: their sum is the function whose root is found.
     """
 
     rtol: float
@@ -541,7 +542,7 @@ class _Illinois(optx.AbstractRootFinder):
         upper = jnp.asarray(options["upper"], dtype)
         inf = jnp.asarray(jnp.inf, dtype)
         return _IllinoisState(
-            lower, upper, inf, inf, jnp.array(0), upper, inf, inf, jnp.array(True)
+            lower, upper, inf, inf, jnp.array(0), upper, inf, inf, jnp.array(0)
         )
 
     @staticmethod
@@ -556,17 +557,12 @@ class _Illinois(optx.AbstractRootFinder):
     def step(self, fn, y, args, options, state, tags):
         del y, options, tags
         a, b, fa, fb = state.lower, state.upper, state.f_lower, state.f_upper
-        t = jnp.where(state.first, b, self._secant(a, b, fa, fb))
-        points = jnp.where(state.first, jnp.stack([a, b]), jnp.stack([t, t]))
-
-        def value(t_):
-            values, aux = fn(t_, args)
-            leaves = jax.tree.leaves(values)
-            return sum(jnp.asarray(v, points.dtype) for v in leaves), aux
-
-        fs, aux = jax.vmap(value)(points)
-        aux = jax.tree.map(lambda x: x[-1], aux)
-        f = fs[1]
+        stage = state.stage
+        t = jnp.where(
+            stage == 0, a, jnp.where(stage == 1, b, self._secant(a, b, fa, fb))
+        )
+        values, aux = fn(t, args)
+        f = sum(jnp.asarray(v, t.dtype) for v in jax.tree.leaves(values))
         # `t` replaces the end whose value has the same sign; an end kept twice in a
         # row has its value halved (Illinois), so that both ends converge.
         replace_upper = jnp.sign(f) == jnp.sign(fb)
@@ -581,12 +577,22 @@ class _Illinois(optx.AbstractRootFinder):
             t=t,
             f=f,
             diff=t - state.t,
-            first=jnp.array(False),
+            stage=jnp.array(2),
         )
-        start = _IllinoisState(
-            a, b, fs[0], fs[1], jnp.array(0), b, f, jnp.inf, jnp.array(False)
+        # The first two steps only record `f(lower)`, then `f(upper)`; a root found
+        # at `lower` ends the search there (`f == 0`, `terminate`).
+        at_lower = _IllinoisState(
+            a, b, f, fb, jnp.array(0), a, f, jnp.inf, jnp.array(1)
         )
-        new = jax.tree.map(lambda x, y_: jnp.where(state.first, x, y_), start, update)
+        at_upper = _IllinoisState(
+            a, b, fa, f, jnp.array(0), b, f, jnp.inf, jnp.array(2)
+        )
+        new = jax.tree.map(
+            lambda x, y_, z: jnp.where(stage == 0, x, jnp.where(stage == 1, y_, z)),
+            at_lower,
+            at_upper,
+            update,
+        )
         return t, new, aux
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -597,7 +603,9 @@ class _Illinois(optx.AbstractRootFinder):
             jnp.abs(state.upper), jnp.abs(state.lower)
         )
         done = (small_step & (jnp.abs(state.f) < self.atol)) | collapsed
-        return done | (state.f == 0), optx.RESULTS.successful
+        # (Before both ends are evaluated only an exact root stops it.)
+        started = state.stage == 2
+        return (started & done) | (state.f == 0), optx.RESULTS.successful
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
