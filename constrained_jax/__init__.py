@@ -94,4 +94,7 @@ from ._variational_integrator import (
 )
 
 
-__version__ = importlib.metadata.version("constrained_jax")
+try:
+    __version__ = importlib.metadata.version("constrained_jax")
+except importlib.metadata.PackageNotFoundError:  # a source tree on `PYTHONPATH`
+    __version__ = "0+unknown"

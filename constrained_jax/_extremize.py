@@ -31,7 +31,7 @@ from ._kkt import (
     reduced_hessian_extremes,
     tangent_projector,
 )
-from ._misc import all_finite, as_traced_args, inexact_asarray
+from ._misc import all_finite, as_traced_args, full_precision, inexact_asarray
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.minres import MINRES
@@ -284,6 +284,7 @@ def _constraint_distance(g, jac):
     return distance, inconsistent
 
 
+@full_precision
 def extremize(
     objective: ObjectiveFn,
     x0: X,

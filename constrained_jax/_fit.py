@@ -21,7 +21,13 @@ import optax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._custom_types import Args
-from ._misc import all_finite, as_traced_args, default_float_dtype, progress_bar
+from ._misc import (
+    all_finite,
+    as_traced_args,
+    default_float_dtype,
+    full_precision,
+    progress_bar,
+)
 from ._results import RESULTS
 
 
@@ -82,6 +88,7 @@ class _State(eqx.Module):
     first_grad_norm: Float[Array, ""]  # at `params0` (returned if diverged)
 
 
+@full_precision
 def fit(
     loss,
     params0: PyTree,

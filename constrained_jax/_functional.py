@@ -38,6 +38,7 @@ from ._misc import (
     all_finite,
     as_traced_args,
     default_float_dtype,
+    full_precision,
 )
 from ._results import raise_if_failed, RESULTS
 from ._solver.newton import AbstractKKTSolver, Newton
@@ -731,6 +732,7 @@ def _check_boundary(functional, args) -> None:
         )
 
 
+@full_precision
 def solve_functional(
     functional: Functional,
     args: Args = None,

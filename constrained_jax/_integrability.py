@@ -39,7 +39,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._constraints import AbstractConstraint, Holonomic
 from ._custom_types import Args, ScalarLike
-from ._misc import as_traced_args, default_float_dtype
+from ._misc import as_traced_args, default_float_dtype, full_precision
 
 
 # ---------------------------------------------------------------------------------
@@ -142,6 +142,7 @@ def _exterior(jac):
     return jnp.swapaxes(jac, -1, -2) - jac
 
 
+@full_precision
 def exterior_derivative(
     constraint: AbstractConstraint,
     q: Float[ArrayLike, " n"],
@@ -228,6 +229,7 @@ def _pointwise_jit(test, constraint, q, t, args, rtol, atol):
     return at(q, t)
 
 
+@full_precision
 def is_exact(
     constraint: AbstractConstraint,
     q: Float[ArrayLike, " n"] | Float[ArrayLike, "m n"],
@@ -284,6 +286,7 @@ def is_exact(
     return _pointwise(_exact_at, constraint, q, t, args, rtol, atol, "is_exact")
 
 
+@full_precision
 def is_integrable(
     constraint: AbstractConstraint,
     q: Float[ArrayLike, " n"] | Float[ArrayLike, "m n"],
@@ -390,6 +393,7 @@ class _SegmentIntegral(eqx.Module):
         return weights @ jax.vmap(integrand)(nodes)
 
 
+@full_precision
 def integrate_pfaffian(
     constraint: AbstractConstraint,
     q_ref: Float[ArrayLike, " n"],

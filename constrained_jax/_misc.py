@@ -118,3 +118,23 @@ def inexact_asarray(x) -> Array:
     if not jnp.issubdtype(dtype, jnp.inexact):
         dtype = default_float_dtype()
     return jnp.asarray(x, dtype=dtype)
+
+
+def full_precision(fn):
+    """`fn`, traced and run with matrix products at full precision.
+
+    XLA:GPU computes a float32 `dot` by default in TF32 (a 10-bit mantissa, relative
+    errors about 1e-3): the library's products (quadrature and interpolation tables,
+    Schur complements, Newton and Gauss-Newton steps) and the user's own inside a
+    solve would then miss float32's tolerances, or fail to converge (the float32 sphere
+    geodesic stalled at 256 Newton steps on an H100, `benchmarks/gpu.md`). Each public
+    solve is therefore traced under `jax.default_matmul_precision("highest")`, for its
+    own products and the user's functions it calls. (XLA:CPU computes every float32
+    and float64 product in full precision anyway: on a CPU nothing changes.)"""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return wrapper

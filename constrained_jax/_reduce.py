@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from ._constraints import AbstractConstraint, Holonomic
 from ._custom_types import Args, ScalarLike
-from ._misc import default_float_dtype
+from ._misc import default_float_dtype, full_precision
 from ._solver.sparse import as_dense
 from ._system import LagrangianSystem, PATTERN_MISMATCH_MESSAGE
 
@@ -70,6 +70,7 @@ class Reduction(eqx.Module):
         return eqx.error_if(lam, mismatch, PATTERN_MISMATCH_MESSAGE)
 
 
+@full_precision
 def reduce(
     system: LagrangianSystem,
     embedding: Callable,
@@ -138,6 +139,7 @@ def _null_space(jac: Float[Array, "k n"]) -> Float[Array, "n m"]:
     return vt[k:].T
 
 
+@full_precision
 def linearize(
     system: LagrangianSystem,
     q_eq: Float[ArrayLike, " n"],

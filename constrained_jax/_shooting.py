@@ -35,7 +35,7 @@ from ._functional import (
     FunctionalSolution,
 )
 from ._implicit import nan_derivatives_if_failed
-from ._misc import as_traced_args, check_max_steps
+from ._misc import as_traced_args, check_max_steps, full_precision
 from ._results import raise_if_failed, RESULTS
 
 
@@ -50,6 +50,7 @@ def _second_derivative(lagrangian_star: Callable, y, yp, x, args):
     return jnp.linalg.solve(hess, dl_dy - mixed)
 
 
+@full_precision
 def solve_shooting(
     functional: Functional,
     args: Args = None,

@@ -30,6 +30,7 @@ from ._misc import (
     check_max_steps,
     CONSISTENCY_TOLERANCE,
     float_tolerance,
+    full_precision,
     inexact_asarray,
     SIMULATE_TOLERANCE,
 )
@@ -106,6 +107,7 @@ class Trajectory(eqx.Module):
     events: Events | None = None
 
 
+@full_precision
 def consistent_initial_state(
     system: LagrangianSystem, q0, qd0, t0=0.0, args=None, *, iterations: int = 8
 ):
@@ -166,6 +168,7 @@ def _derivative(system, stabilization, t, y, args):
     return _field(system, stabilization, t, y, args)[0]
 
 
+@full_precision
 def simulate(
     system: LagrangianSystem,
     t_span: tuple[float, float],

@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
-from ._misc import inexact_asarray
+from ._misc import full_precision, inexact_asarray
 from ._solver import kkt_derivative
 from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
 from ._solver.sparse import SparseMatrix
@@ -403,6 +403,7 @@ class LagrangianSystem(eqx.Module):
             [c.position_residual(q, t, args) for c in self.constraints]
         )
 
+    @full_precision
     def solve_accelerations(
         self, q, qd, t, args, bias_correction=None
     ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
@@ -434,6 +435,7 @@ class LagrangianSystem(eqx.Module):
         sol = jnp.where(mismatch, 0.0, jnp.concatenate([qdd, lam]))
         return sol[:n], sol[n:], singular, mismatch
 
+    @full_precision
     def accelerations(self, q, qd, t, args=None):
         """Solve the equations of motion for `(qddot, multipliers)`.
 
@@ -481,6 +483,7 @@ class LagrangianSystem(eqx.Module):
         )
         return qdd, lam
 
+    @full_precision
     def constraint_forces(self, q, qd, t, args=None) -> Float[Array, " n"]:
         """The generalised force of constraint `Q^c = A^T lambda`."""
         q, qd = inexact_asarray(q), inexact_asarray(qd)

@@ -80,7 +80,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Holonomic
 from ._implicit import implicit_jvp, nan_derivatives_if_failed
-from ._misc import all_finite, check_max_steps, default_float_dtype
+from ._misc import all_finite, check_max_steps, default_float_dtype, full_precision
 from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.newton import AbstractKKTSolver, iterate
@@ -431,6 +431,7 @@ class VariationalTrajectory(eqx.Module):
     stats: dict
 
 
+@full_precision
 def integrate_variational(
     integrator: AbstractVariationalIntegrator,
     system: LagrangianSystem,

@@ -242,7 +242,7 @@ def test_boundary_off_constraint_is_refused():
     assert sol.result == cjax.RESULTS.inconsistent_boundary
     assert int(sol.stats["num_steps"]) == 0
     with pytest.raises(Exception, match="violate its holonomic"):
-        solve(off, True)
+        jax.block_until_ready(solve(off, True))  # (on a GPU: raised when waited for)
     # The radius in args traced: the same.
     sol = jax.jit(
         lambda r: cjax.solve_functional(_sphere(start, end), {"radius": r}, throw=False)

@@ -376,6 +376,38 @@ _FLOAT32_SCRIPT = textwrap.dedent(
 )
 
 
+def test_products_are_full_precision_on_every_backend():
+    """Every matrix product of a public solve, the library's and the user's functions',
+    is traced at `Precision.HIGHEST` (XLA:GPU's default for float32 is TF32, about
+    1e-3 relative: the float32 sphere geodesic stalled at 256 Newton steps on an H100,
+    `benchmarks/gpu.md`). Checked on the lowered programs, so on a CPU too."""
+    from constrained_jax.scenes import cylinder_volume, sphere_geodesic
+
+    def precisions(fn, *inputs):
+        text = jax.jit(fn).lower(*inputs).as_text()
+        dots = [line for line in text.splitlines() if "dot_general" in line]
+        return len(dots), sum("precision = [HIGHEST, HIGHEST]" in d for d in dots)
+
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+
+    def user_lagrangian(q, qd, t, args):  # a product of the user's own
+        return 0.5 * qd @ jnp.diag(jnp.asarray([2.0, 1.0])) @ qd - q[1]
+
+    free = cjax.LagrangianSystem(user_lagrangian)
+    for fn, inputs in [
+        (lambda: sphere_geodesic.solve(throw=False).value, ()),
+        (lambda: cylinder_volume.solve(1.0, 1.0, throw=False).value, ()),
+        (
+            lambda t1: cjax.simulate(pendulum.system(), (0.0, t1), q0, qd0, args).q,
+            (1.0,),
+        ),
+        (lambda q: free.accelerations(q, q, 0.0)[0], (jnp.ones(2),)),
+    ]:
+        total, highest = precisions(fn, *inputs)
+        assert total > 0 and highest == total, (total, highest)
+
+
 @pytest.fixture(scope="module")
 def float32_run():
     proc = run_python(_FLOAT32_SCRIPT, timeout=1500, JAX_ENABLE_X64="0")

@@ -91,11 +91,11 @@ def test_only_chunks_reach_the_device():
     inputs stay in host memory and only the current chunk is sent)."""
     n, batch_size = 1009, 64  # 16 chunks, the last one padded
     seen = []
-    before = jax.live_arrays()  # held, so that their ids stay theirs
+    before = jax.live_arrays("cpu")  # held, so that their ids stay theirs
     old = {id(a) for a in before}
 
     def record(x):
-        live = [a.shape for a in jax.live_arrays() if id(a) not in old]
+        live = [a.shape for a in jax.live_arrays("cpu") if id(a) not in old]
         seen.append((x.shape, live))
         return x
 
