@@ -164,6 +164,29 @@ def random_states(scene: str, num: int):
     return jax.vmap(lambda th, thd: cyl.state(th, thd, args))(theta1, theta1d)
 
 
+def eom_variants(scene: str, t) -> dict:
+    """The batched equations of motion of a scene at time `t`, each `(q, qd, args) ->
+    (qdd, multipliers)` over a batch of states: autodiff `solve_accelerations`, the
+    checked `accelerations`, and the hand-written closed form (also `gpu.py`'s)."""
+    system = (pend if scene == "pendulum" else cyl).system()
+    by_hand = (
+        pendulum_accelerations_by_hand
+        if scene == "pendulum"
+        else cylinders_accelerations_by_hand
+    )
+    return {
+        "autodiff solve_accelerations": lambda q, qd, args: jax.vmap(
+            lambda q_, qd_: system.solve_accelerations(q_, qd_, t, args)[:2]
+        )(q, qd),
+        "autodiff accelerations (checked)": lambda q, qd, args: jax.vmap(
+            lambda q_, qd_: system.accelerations(q_, qd_, t, args)
+        )(q, qd),
+        "hand-written": lambda q, qd, args: jax.vmap(
+            lambda q_, qd_: by_hand(q_, qd_, args)
+        )(q, qd),
+    }
+
+
 def accelerations_benchmark(scene: str, num: int, repeats: int) -> dict:
     module = pend if scene == "pendulum" else cyl
     system = module.system()
@@ -174,24 +197,11 @@ def accelerations_benchmark(scene: str, num: int, repeats: int) -> dict:
         saddle_point_solver=cjax.FullKKTLU(),
     )
     args = module.default_args()
-    by_hand = (
-        pendulum_accelerations_by_hand
-        if scene == "pendulum"
-        else cylinders_accelerations_by_hand
-    )
     q, qd = random_states(scene, num)
     t = jnp.asarray(0.0)
 
     variants = {
-        "autodiff solve_accelerations": lambda q, qd, args: jax.vmap(
-            lambda q_, qd_: system.solve_accelerations(q_, qd_, t, args)[:2]
-        )(q, qd),
-        "autodiff accelerations (checked)": lambda q, qd, args: jax.vmap(
-            lambda q_, qd_: system.accelerations(q_, qd_, t, args)
-        )(q, qd),
-        "hand-written": lambda q, qd, args: jax.vmap(
-            lambda q_, qd_: by_hand(q_, qd_, args)
-        )(q, qd),
+        **eom_variants(scene, t),
         # Ablation: the previous default, a pivoted LU of the whole KKT matrix.
         "ablation: FullKKTLU (pivoted LU)": lambda q, qd, args: jax.vmap(
             lambda q_, qd_: system_lu.solve_accelerations(q_, qd_, t, args)[:2]

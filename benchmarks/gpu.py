@@ -275,25 +275,12 @@ def simulate_batches(devs, sizes, repeats) -> dict:
 
 
 def eom_variants(scene: str) -> dict:
-    module = pend if scene == "pendulum" else cyl
-    system = module.system()
-    by_hand = (
-        dynamics.pendulum_accelerations_by_hand
-        if scene == "pendulum"
-        else dynamics.cylinders_accelerations_by_hand
-    )
-    t = 0.0
-    return {
-        "solve_accelerations": lambda q, qd, args: jax.vmap(
-            lambda a, b: system.solve_accelerations(a, b, t, args)[:2]
-        )(q, qd),
-        "accelerations (checked)": lambda q, qd, args: jax.vmap(
-            lambda a, b: system.accelerations(a, b, t, args)
-        )(q, qd),
-        "hand-written": lambda q, qd, args: jax.vmap(lambda a, b: by_hand(a, b, args))(
-            q, qd
-        ),
+    names = {
+        "autodiff solve_accelerations": "solve_accelerations",
+        "autodiff accelerations (checked)": "accelerations (checked)",
+        "hand-written": "hand-written",
     }
+    return {names[k]: fn for k, fn in dynamics.eom_variants(scene, 0.0).items()}
 
 
 def eom(devs, sizes, repeats) -> dict:
