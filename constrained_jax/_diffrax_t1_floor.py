@@ -94,7 +94,7 @@ def active() -> bool:
 
 
 @contextlib.contextmanager
-def _scan_t1_floor():
+def _looped_t1_floor():
     global _depth
     module = _integrate_module()
     if module is None:
@@ -114,6 +114,6 @@ def _scan_t1_floor():
 
 
 def diffeqsolve(*args, **kwargs):
-    """`diffrax.diffeqsolve(*args, **kwargs)`, with the `t1` floor scanned (above)."""
-    with _scan_t1_floor():
+    """`diffrax.diffeqsolve(*args, **kwargs)`, with the `t1` floor in a loop (above)."""
+    with _looped_t1_floor():
         return diffrax.diffeqsolve(*args, **kwargs)
