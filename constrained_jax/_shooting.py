@@ -27,7 +27,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike
 
 from ._custom_types import Args
-from ._diffrax_t1_floor import diffeqsolve
+from ._diffrax_integrate import diffeqsolve
 from ._discretization import Chebyshev
 from ._functional import (
     Functional,

@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._adjoint import default_adjoint
 from ._contact import build_modes, Events, find_unilaterals, impact
-from ._diffrax_t1_floor import diffeqsolve
+from ._diffrax_integrate import diffeqsolve
 from ._implicit import nan_derivatives_if_failed
 from ._misc import (
     all_finite,
@@ -850,6 +850,9 @@ def _run_phase(
         event=event,
         progress_meter=progress_meter,
         throw=False,
+        # `simulate` made `ts` valid (`_time_grid_ok`, then clipped to each phase's
+        # span): no host callbacks, so the program can be cached.
+        save_times_checked=True,
     )
     (q_end, qd_end) = sol.ys[0]
     return _Phase(

@@ -195,3 +195,67 @@ def test_another_step_size_does_not_recompile():
     for traj in out.values():
         assert traj.result == cjax.RESULTS.successful
     assert out["coarse"].stats["num_steps"] != out["fine"].stats["num_steps"]
+
+
+def _callbacks(jaxpr) -> list[str]:
+    """The host-callback primitives in a closed jaxpr, nested ones included."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if "callback" in eqn.primitive.name:
+            found.append(eqn.primitive.name)
+        for sub in jex.core.jaxprs_in_params(eqn.params):
+            found += _callbacks(sub)
+    return found
+
+
+def test_simulate_programs_have_no_host_callbacks():
+    # JAX never writes a program with host callbacks to its persistent compilation
+    # cache (`cjax.enable_compilation_cache`). diffrax checks traced save times with
+    # `equinox.error_if`s (host callbacks); `simulate` checks them itself (a traced
+    # bad grid is `RESULTS.invalid_time_grid`, test_sharp_edges_dynamics.py) and
+    # drops diffrax's. Attached, release and contact-event runs, save times traced.
+    from constrained_jax.scenes import bouncing_ball as ball
+
+    ts = jnp.linspace(0.0, 1.0, 5)
+    cases = []
+    for system, scene in ((cyl2.system(), cyl2), (cyl2.contact_system(), cyl2)):
+        args = scene.default_args()
+        q0, qd0 = scene.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
+        cases.append((system, q0, qd0, args, {}))
+    args = ball.default_args()
+    q0, qd0 = ball.state(1.0, 0.1)
+    cases.append((ball.system(), q0, qd0, args, {"max_events": 3}))
+    for system, q0, qd0, args, options in cases:
+
+        def run(q0, qd0, args, ts, system=system, options=options):
+            return cjax.simulate(
+                system,
+                (0.0, 1.0),
+                q0,
+                qd0,
+                args,
+                saveat=cjax.SaveAt(ts=ts),
+                throw=False,
+                **options,
+            )
+
+        with jax.numpy_dtype_promotion("standard"):
+            jaxpr = jax.make_jaxpr(run)(q0, qd0, args, ts)
+        assert _callbacks(jaxpr.jaxpr) == []
+    # The library's own scoped change: diffrax's checks are back outside it.
+    from constrained_jax import _diffrax_integrate
+
+    assert _diffrax_integrate.active()
+    with jax.numpy_dtype_promotion("standard"):
+        plain = jax.make_jaxpr(
+            lambda ts: diffrax.diffeqsolve(
+                diffrax.ODETerm(lambda t, y, args: -y),
+                diffrax.Tsit5(),
+                0.0,
+                1.0,
+                0.1,
+                jnp.ones(()),
+                saveat=diffrax.SaveAt(ts=ts),
+            ).ys
+        )(ts)
+    assert _callbacks(plain.jaxpr)

@@ -1,7 +1,19 @@
-"""`diffeqsolve`: `diffrax.diffeqsolve`, with its `t1 - 100 ULP` floor computed in a
-loop instead of 100 unrolled steps, bit for bit the same.
+"""`diffeqsolve`: `diffrax.diffeqsolve`, traced with two scoped changes to diffrax's
+private `_integrate` module (the one place this library touches it):
 
-At the start of every solve, diffrax 0.7's `_integrate.loop` computes the threshold
+1. its `t1 - 100 ULP` floor computed in a loop instead of 100 unrolled steps, bit for
+   bit the same (below);
+2. with `save_times_checked=True`, without its run-time checks of `SaveAt(ts=...)`
+   (sorted, inside `[t0, t1]`), for callers that have already made the save times
+   valid (`simulate` checks them, reports `RESULTS.invalid_time_grid` and clips
+   them to each phase's span). diffrax's checks are `equinox.error_if`s, host
+   callbacks in the compiled program, and JAX never writes a program with host
+   callbacks to its persistent compilation cache: without them every `simulate`
+   program is cached (`constrained_jax.enable_compilation_cache`), and a second
+   `constrained-jax tour` reads the dynamics scenes' programs from disk too.
+   (diffrax's check of a traced `dt0`'s sign stays: nothing else checks it.)
+
+The `t1` floor. At the start of every solve, diffrax 0.7's `_integrate.loop` computes the threshold
 at which it rounds a step to `t1` as
 
     t1_clip_floor = t1
@@ -22,10 +34,10 @@ drops. Every call's value is diffrax's, bit for bit (the same operations; checke
 values made the pendulum's run 10 % slower; the loop that returns only the last one
 does not, within this machine's noise.)
 
-Scoped: the replacement is installed on `diffrax._integrate` (a private module; its
+Scoped: both replacements are installed on `diffrax._integrate` (a private module; its
 module-level name `eqxi`) only while one of this library's solves is being traced, and
-only for the diffrax version it was written against (`_TESTED`): another version runs
-diffrax unchanged. A lazily traced backward pass that runs outside the scope uses
+only for the diffrax version they were written against (`_TESTED`): another version
+runs diffrax unchanged (and its `simulate` programs are not cached). A lazily traced backward pass that runs outside the scope uses
 diffrax's own chain: the same values, the old compile time.
 """
 
@@ -69,8 +81,22 @@ def prevbefore(x):
     return out
 
 
+# The messages of diffrax 0.7.2's `_check_subsaveat_ts` (`diffeqsolve`).
+_SAVE_TIME_MESSAGES = frozenset(
+    {"saveat.ts must be increasing or decreasing.", "saveat.ts must lie between t0 and t1."}
+)
+
+
+def error_if(x, pred, msg):
+    """`eqxi.error_if(x, pred, msg)`, except for diffrax's checks of the save times
+    inside a `diffeqsolve(..., save_times_checked=True)`, which return `x`."""
+    if getattr(_state, "save_times_checked", False) and msg in _SAVE_TIME_MESSAGES:
+        return x
+    return eqxi.error_if(x, pred, msg)
+
+
 class _Eqxi(types.ModuleType):
-    """`equinox.internal`, with `prevbefore` replaced."""
+    """`equinox.internal`, with `prevbefore` and `error_if` replaced."""
 
     def __getattr__(self, name):
         return getattr(eqxi, name)
@@ -78,6 +104,7 @@ class _Eqxi(types.ModuleType):
 
 _EQXI = _Eqxi("equinox.internal (constrained_jax's t1 floor)")
 _EQXI.prevbefore = prevbefore
+_EQXI.error_if = error_if
 
 
 def _integrate_module():
@@ -94,12 +121,14 @@ def active() -> bool:
 
 
 @contextlib.contextmanager
-def _looped_t1_floor():
+def _scoped(save_times_checked: bool):
     global _depth
     module = _integrate_module()
     if module is None:
         yield
         return
+    outer = getattr(_state, "save_times_checked", False)
+    _state.save_times_checked = save_times_checked
     with _lock:
         _depth += 1
         module.eqxi = _EQXI
@@ -107,13 +136,17 @@ def _looped_t1_floor():
         yield
     finally:
         _state.last = None
+        _state.save_times_checked = outer
         with _lock:
             _depth -= 1
             if _depth == 0:
                 module.eqxi = eqxi
 
 
-def diffeqsolve(*args, **kwargs):
-    """`diffrax.diffeqsolve(*args, **kwargs)`, with the `t1` floor in a loop (above)."""
-    with _looped_t1_floor():
+def diffeqsolve(*args, save_times_checked: bool = False, **kwargs):
+    """`diffrax.diffeqsolve(*args, **kwargs)`, with the `t1` floor in a loop and, if
+    `save_times_checked`, without diffrax's run-time checks of the save times (the
+    caller guarantees them: sorted in the direction of integration and inside the
+    span, as diffrax compares them)."""
+    with _scoped(save_times_checked):
         return diffrax.diffeqsolve(*args, **kwargs)
