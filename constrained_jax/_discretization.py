@@ -144,10 +144,12 @@ class AbstractDiscretization(eqx.Module):
         [`constrained_jax.solve_functional`][] when the caller gives none."""
 
     def nodes(self, interval: Interval) -> Float[Array, " N"]:
-        """The nodes on `[xL, xR]`."""
+        """The nodes on `[xL, xR]`: sorted, and inside it also after rounding (the
+        last node of `xL + (xR - xL) * 1` is `xR + 1 ULP` for some ends, e.g.
+        `(-1.95, 1.38)`: clipped to `xR`)."""
         xl, xr = interval
         t = jnp.asarray(self.reference_nodes(), xl.dtype)
-        return xl + (xr - xl) * (t + 1) / 2
+        return jnp.clip(xl + (xr - xl) * (t + 1) / 2, xl, xr)
 
     def tabulate(
         self, singular_ends: tuple[tuple[bool, bool], ...] = ((False, False),)
@@ -589,7 +591,7 @@ class PiecewiseLinear(AbstractDiscretization):
         xl, xr = interval
         i = jnp.arange(self.num_nodes, dtype=default_float_dtype())
         t = (i * (2.0 / (self.num_nodes - 1)) + -1.0).at[-1].set(1.0)
-        return xl + (xr - xl) * (t.astype(xl.dtype) + 1) / 2
+        return jnp.clip(xl + (xr - xl) * (t.astype(xl.dtype) + 1) / 2, xl, xr)
 
     def integrate(self, integrand, values, interval, singular=(False, False)):
         xl, xr = interval

@@ -199,6 +199,9 @@ def _solve_shooting(
             adjoint=diffrax.ForwardMode(),
             max_steps=100_000,
             throw=False,
+            # `Chebyshev.nodes` are sorted and inside `[xL, xR]`: no host callbacks
+            # (diffrax's checks), so the program can be cached.
+            save_times_checked=True,
         )
 
     def residual(unknowns, a):

@@ -208,7 +208,7 @@ def _callbacks(jaxpr) -> list[str]:
     return found
 
 
-def test_simulate_programs_have_no_host_callbacks():
+def test_simulate_and_shooting_programs_have_no_host_callbacks():
     # JAX never writes a program with host callbacks to its persistent compilation
     # cache (`cjax.enable_compilation_cache`). diffrax checks traced save times with
     # `equinox.error_if`s (host callbacks); `simulate` checks them itself (a traced
@@ -242,6 +242,20 @@ def test_simulate_programs_have_no_host_callbacks():
         with jax.numpy_dtype_promotion("standard"):
             jaxpr = jax.make_jaxpr(run)(q0, qd0, args, ts)
         assert _callbacks(jaxpr.jaxpr) == []
+    # The same for `solve_shooting`, which saves at its Chebyshev nodes.
+    from constrained_jax.scenes import catenary
+
+    def shoot(args):
+        return cjax.solve_shooting(
+            catenary.functional(-1.95, 0.0, 1.38, 0.5),
+            args,
+            slope0=jnp.asarray(-1.0),
+            multipliers0=jnp.asarray([-1.0]),
+            throw=False,
+        ).y
+
+    shooting = jax.make_jaxpr(shoot)({"rho_g": 2.5, "length": 4.0})
+    assert _callbacks(shooting.jaxpr) == []
     # The library's own scoped change: diffrax's checks are back outside it.
     from constrained_jax import _diffrax_integrate
 
