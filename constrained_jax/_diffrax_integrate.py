@@ -13,8 +13,8 @@ private `_integrate` module (the one place this library touches it):
    `constrained-jax tour` reads the dynamics scenes' programs from disk too.
    (diffrax's check of a traced `dt0`'s sign stays: nothing else checks it.)
 
-The `t1` floor. At the start of every solve, diffrax 0.7's `_integrate.loop` computes the threshold
-at which it rounds a step to `t1` as
+The `t1` floor. At the start of every solve, diffrax 0.7's `_integrate.loop` computes
+the threshold at which it rounds a step to `t1` as
 
     t1_clip_floor = t1
     for _ in range(100):
@@ -37,8 +37,9 @@ does not, within this machine's noise.)
 Scoped: both replacements are installed on `diffrax._integrate` (a private module; its
 module-level name `eqxi`) only while one of this library's solves is being traced, and
 only for the diffrax version they were written against (`_TESTED`): another version
-runs diffrax unchanged (and its `simulate` programs are not cached). A lazily traced backward pass that runs outside the scope uses
-diffrax's own chain: the same values, the old compile time.
+runs diffrax unchanged (and its `simulate` programs are not cached). A lazily traced
+backward pass that runs outside the scope uses diffrax's own chain: the same values,
+the old compile time.
 """
 
 import contextlib
@@ -83,7 +84,10 @@ def prevbefore(x):
 
 # The messages of diffrax 0.7.2's `_check_subsaveat_ts` (`diffeqsolve`).
 _SAVE_TIME_MESSAGES = frozenset(
-    {"saveat.ts must be increasing or decreasing.", "saveat.ts must lie between t0 and t1."}
+    {
+        "saveat.ts must be increasing or decreasing.",
+        "saveat.ts must lie between t0 and t1.",
+    }
 )
 
 

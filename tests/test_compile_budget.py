@@ -262,14 +262,16 @@ def test_simulate_and_shooting_programs_have_no_host_callbacks():
     assert _diffrax_integrate.active()
     with jax.numpy_dtype_promotion("standard"):
         plain = jax.make_jaxpr(
-            lambda ts: diffrax.diffeqsolve(
-                diffrax.ODETerm(lambda t, y, args: -y),
-                diffrax.Tsit5(),
-                0.0,
-                1.0,
-                0.1,
-                jnp.ones(()),
-                saveat=diffrax.SaveAt(ts=ts),
-            ).ys
+            lambda ts: (
+                diffrax.diffeqsolve(
+                    diffrax.ODETerm(lambda t, y, args: -y),
+                    diffrax.Tsit5(),
+                    0.0,
+                    1.0,
+                    0.1,
+                    jnp.ones(()),
+                    saveat=diffrax.SaveAt(ts=ts),
+                ).ys
+            )
         )(ts)
     assert _callbacks(plain.jaxpr)
