@@ -106,7 +106,7 @@ class _Eqxi(types.ModuleType):
         return getattr(eqxi, name)
 
 
-_EQXI = _Eqxi("equinox.internal (constrained_jax's t1 floor)")
+_EQXI = _Eqxi("equinox.internal (constrained_jax's diffrax adapter)")
 _EQXI.prevbefore = prevbefore
 _EQXI.error_if = error_if
 
