@@ -218,9 +218,9 @@ def test_simulate_and_shooting_programs_have_no_host_callbacks():
 
     ts = jnp.linspace(0.0, 1.0, 5)
     cases = []
-    for system, scene in ((cyl2.system(), cyl2), (cyl2.contact_system(), cyl2)):
-        args = scene.default_args()
-        q0, qd0 = scene.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
+    args = cyl2.default_args()
+    q0, qd0 = cyl2.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
+    for system in (cyl2.system(), cyl2.contact_system()):
         cases.append((system, q0, qd0, args, {}))
     args = ball.default_args()
     q0, qd0 = ball.state(1.0, 0.1)
