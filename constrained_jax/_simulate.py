@@ -1280,7 +1280,10 @@ def _event_run(phase, modes, mode0, max_events, t0, t1, q0, qd0, args, ts, adapt
         "qd": qd0,
         "mode": jnp.asarray(mode0, int),
         "count": jnp.array(0),
-        "done": jnp.array(False),
+        # A start with NaN or inf (refused by `_simulate` as `invalid_input`) runs
+        # no phase: its steps would be rejected until `max_steps` (under `jax.vmap`
+        # the whole batch waiting for it).
+        "done": jnp.invert(all_finite((q0, qd0, args))),
         "result": RESULTS.successful,
         "q_saved": jnp.full((num_ts, n), inf),
         "qd_saved": jnp.full((num_ts, n), inf),
@@ -1612,11 +1615,20 @@ def _simulate(
     # (diffrax raises on such save times whatever `throw` says: run on a valid grid,
     # and report `invalid_time_grid`.)
     ts = jnp.where(grid_ok, ts, t0)
+    # A start with NaN or inf (in `q0`, `qd0`, `args` or the span) is refused
+    # (`invalid_input`) and runs the empty span at a finite `t0`: integrated, its
+    # steps would all be rejected until `max_steps`, and under `jax.vmap` (a sweep)
+    # every other lane of the batch would wait for it (160x the time of a batch of
+    # four pendulums).
+    t_start = jnp.where(jnp.isfinite(t0), t0, jnp.zeros_like(t0))
+    t0_run = jnp.where(start_ok, t0, t_start)
+    t1_run = jnp.where(start_ok, t1, t_start)
+    ts = jnp.where(start_ok, ts, t_start)
 
     run = driver.run(
         system,
-        t0,
-        t1,
+        t0_run,
+        t1_run,
         q0,
         qd0,
         args,

@@ -181,6 +181,9 @@ def test_restitution_outside_the_unit_interval_is_reported(drops):
     i = len(CASES)
     assert traj.result._value[i] == cjax.RESULTS.invalid_restitution._value
     assert traj.result._value[i + 1] == cjax.RESULTS.invalid_input._value
+    # The NaN lane runs no phase (it used to reject steps until `max_steps`, with
+    # the whole batch waiting for it).
+    assert int(traj.stats["num_steps"][i + 1]) == 0
 
 
 def test_initial_contact_mode(drops):

@@ -14,7 +14,8 @@
 - the same with one fixed step over the sign change (both ends positive):
   `RESULTS.release_missed`; a fixed step that brackets it: released at pi/2.
 - a sign change in a window narrower than the steps: found with `dtmax` (documented).
-- NaN in q0 or args: `RESULTS.invalid_input`; save times outside t_span or unsorted:
+- NaN in q0 or args: `RESULTS.invalid_input` (in a batch, such a lane takes no step and
+  does not hold up the others); save times outside t_span or unsorted:
   `ValueError` (concrete) / `RESULTS.invalid_time_grid` (traced); `max_steps` too
   small: `RESULTS.max_steps_reached`; dt0 pointing away from t1: `ValueError`.
 """
@@ -251,6 +252,32 @@ def test_invalid_inputs(pend):
     assert traj.result == cjax.RESULTS.invalid_input
     traj = cjax.simulate(system, (0.0, 10.0), q0, qd0, args, max_steps=2, throw=False)
     assert traj.result == cjax.RESULTS.max_steps_reached
+
+
+@jax.jit
+@jax.vmap
+def _pendulums(g, t1):
+    """A batch of pendulums (a sweep over `g` and the end time)."""
+    args = dict(pendulum.default_args(), g=g)
+    q0, qd0 = pendulum.state(1.0, 0.0, args)
+    return cjax.simulate(pendulum.system(), (0.0, t1), q0, qd0, args, throw=False)
+
+
+def test_invalid_lane_of_a_batch_runs_no_step():
+    """A lane with NaN in `args` or an infinite end time is `invalid_input` and
+    takes no step: it does not hold up the batch (under `jax.vmap` the loop runs
+    until the slowest lane is done; it used to reject steps until `max_steps`,
+    16,384, for every lane's 100). The other lanes are as without it."""
+    g = jnp.array([9.81, jnp.nan, 9.0, 9.81])
+    t1 = jnp.array([2.0, 2.0, 2.0, jnp.inf])
+    bad = _pendulums(g, t1)
+    good = _pendulums(jnp.array([9.81, 9.5, 9.0, 9.81]), jnp.full((4,), 2.0))
+    invalid, ok = cjax.RESULTS.invalid_input._value, cjax.RESULTS.successful._value
+    np.testing.assert_array_equal(bad.result._value, [ok, invalid, ok, invalid])
+    np.testing.assert_array_equal(bad.stats["num_steps"][1::2], 0)
+    for i in (0, 2):
+        assert int(bad.stats["num_steps"][i]) == int(good.stats["num_steps"][i]) > 0
+        np.testing.assert_allclose(bad.q[i], good.q[i], rtol=1e-14, atol=1e-14)
 
 
 @jax.jit
