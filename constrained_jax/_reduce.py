@@ -23,7 +23,13 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from ._constraints import AbstractConstraint, Holonomic
 from ._custom_types import Args, ScalarLike
-from ._misc import default_float_dtype, full_precision
+from ._misc import (
+    all_finite,
+    CONSISTENCY_TOLERANCE,
+    default_float_dtype,
+    float_tolerance,
+    full_precision,
+)
 from ._solver.sparse import as_dense
 from ._system import LagrangianSystem, PATTERN_MISMATCH_MESSAGE
 
@@ -146,6 +152,8 @@ def linearize(
     qd_eq: Float[ArrayLike, " n"],
     t: ScalarLike = 0.0,
     args: Args = None,
+    *,
+    consistency_tol: float | None = None,
 ) -> Linearization:
     """Linearise the constrained dynamics about `(q_eq, qd_eq)` at time `t`.
 
@@ -161,13 +169,47 @@ def linearize(
     - `q_eq`, `qd_eq`: the equilibrium, shape `(n,)`, on the constraints.
     - `t`: the time at which a non-autonomous system is frozen.
     - `args`: parameters passed to every user function.
+    - `consistency_tol`: how far `(q_eq, qd_eq)` may be from the constraints
+        (relative to `1 + |q_eq|`, `1 + |qd_eq|`); `None` (default) follows the
+        dtype as in [`constrained_jax.simulate`][]: `1e-8` in float64.
 
     **Returns:** a [`constrained_jax.Linearization`][].
+
+    Raises (at run time, also under `jit`) where the linearisation would not describe
+    the system: NaN or inf in the inputs; a point off the constraints (`G(q_eq) != 0`
+    or `A qd_eq + a != 0` beyond `consistency_tol`: project it first with
+    [`constrained_jax.consistent_initial_state`][]); a singular KKT matrix there (the
+    equations of motion have no solution, see
+    [`constrained_jax.LagrangianSystem.accelerations`][]); a non-finite result.
+    Whether the point is an equilibrium is not checked: a moving constraint (the
+    rotating hoop in Cartesian coordinates) has equilibria with nonzero `qd_eq` and
+    `qddot`.
     """
     q_eq = jnp.asarray(q_eq, default_float_dtype())
     qd_eq = jnp.asarray(qd_eq, default_float_dtype())
     system.check(q_eq, qd_eq, t, args)
+    if consistency_tol is None:
+        consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q_eq.dtype)
     t = jnp.asarray(t, q_eq.dtype)
+    finite = all_finite((q_eq, qd_eq, t, args))
+    q_eq, qd_eq = eqx.error_if(
+        (q_eq, qd_eq),
+        jnp.invert(finite),
+        "`linearize`: `q_eq`, `qd_eq`, `t` or `args` contain NaN or inf.",
+    )
+    position = system.holonomic_residual(q_eq, t, args)
+    velocity = system.velocity_residual(q_eq, qd_eq, t, args)
+    off = jnp.any(
+        jnp.abs(position) > consistency_tol * (1 + jnp.max(jnp.abs(q_eq)))
+    ) | jnp.any(jnp.abs(velocity) > consistency_tol * (1 + jnp.max(jnp.abs(qd_eq))))
+    q_eq, qd_eq = eqx.error_if(
+        (q_eq, qd_eq),
+        off,
+        "`linearize`: the point (q_eq, qd_eq) violates the constraints (G(q_eq, t) "
+        "!= 0 or A qd_eq + a != 0 beyond `consistency_tol`): the linearisation on "
+        "the constraint manifold needs a point on it. Project it first with "
+        "`cjax.consistent_initial_state(system, q_eq, qd_eq, t, args)`.",
+    )
     holonomic_rows = [
         jax.jacfwd(c.position_residual)(q_eq, t, args)
         for c in system.constraints
@@ -183,14 +225,30 @@ def linearize(
     z_vel = _null_space(system.constraint_jacobian(q_eq, t, args))
 
     def qdd(q, qd):
-        return system.solve_accelerations(q, qd, t, args)[0]
+        qdd_, _, singular = system.solve_accelerations(q, qd, t, args)
+        return qdd_, singular
 
-    d_q, d_qd = jax.jacfwd(qdd, argnums=(0, 1))(q_eq, qd_eq)
+    (d_q, d_qd), singular = jax.jacfwd(qdd, argnums=(0, 1), has_aux=True)(q_eq, qd_eq)
+    d_q = eqx.error_if(
+        d_q,
+        singular,
+        "`linearize`: the KKT matrix [[M, -A^T], [A, 0]] is singular at (q_eq, qd_eq): "
+        "the equations of motion have no unique solution there (a force along a "
+        "direction without inertia that the constraints leave free, or redundant "
+        "constraints), so they have no linearisation. See "
+        "`cjax.LagrangianSystem.accelerations`.",
+    )
     top = jnp.concatenate(
         [jnp.zeros((z_pos.shape[1], z_pos.shape[1]), q_eq.dtype), z_pos.T @ z_vel], 1
     )
     bottom = jnp.concatenate([z_vel.T @ d_q @ z_pos, z_vel.T @ d_qd @ z_vel], 1)
     matrix = jnp.concatenate([top, bottom], 0)
+    matrix = eqx.error_if(
+        matrix,
+        jnp.invert(jnp.all(jnp.isfinite(matrix))),
+        "`linearize`: the linearised matrix is not finite (the equations of motion "
+        "or their derivatives overflow or are NaN at (q_eq, qd_eq)).",
+    )
     return Linearization(
         matrix=matrix,
         eigenvalues=jnp.linalg.eigvals(matrix),

@@ -109,3 +109,65 @@ def test_linearized_pendulum_frequency():
         np.sort(np.asarray(lin.eigenvalues).imag), [-omega, omega], rtol=1e-10
     )
     np.testing.assert_allclose(np.asarray(lin.eigenvalues).real, 0.0, atol=1e-10)
+
+
+@jax.jit
+def _pendulum_eigenvalues(q, qd, args):
+    """One compiled `linearize` of the pendulum for the careless inputs below."""
+    return cjax.linearize(pendulum.system(), q, qd, args=args).eigenvalues
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("off the rod (r = 1.3 l)", "violates the constraints"),
+        ("radial velocity", "violates the constraints"),
+        ("NaN in args", "NaN or inf"),
+        ("inf in q", "NaN or inf"),
+    ],
+)
+def test_linearize_refuses_points_it_cannot_linearize(case, message):
+    """A point off the constraints (it used to give the frequency of a pendulum of
+    length 1.3 l, sqrt(g / 1.3 l), with no word), and non-finite inputs (it used to
+    give eigenvalues 0 for a NaN gravity): refused at run time, also under `jit`.
+    The valid point through the same program: sqrt(g / l)."""
+    args = pendulum.default_args()
+    q, qd = jnp.array([0.0, -1.0]), jnp.zeros(2)
+    if case.startswith("off"):
+        q = 1.3 * q
+    elif case.startswith("radial"):
+        qd = jnp.array([0.0, 0.5])
+    elif case.startswith("NaN"):
+        args = dict(args, g=jnp.asarray(jnp.nan))
+    else:
+        q = q.at[0].set(jnp.inf)
+    with pytest.raises(Exception, match=message):
+        jax.block_until_ready(_pendulum_eigenvalues(q, qd, args))
+    good = pendulum.default_args()
+    eigenvalues = _pendulum_eigenvalues(jnp.array([0.0, -1.0]), jnp.zeros(2), good)
+    np.testing.assert_allclose(
+        np.sort(np.asarray(eigenvalues).imag), [-np.sqrt(9.81), np.sqrt(9.81)]
+    )
+
+
+def test_linearize_refuses_a_singular_kkt_matrix():
+    """A massless coordinate with a force on it (the equations of motion have no
+    solution): it used to give eigenvalues 0; refused. Without the force (a free
+    gauge) the pendulum's frequency, and a zero mode for the gauge."""
+
+    def system(force):
+        def lagrangian(q, qd, t, args):
+            return pendulum.lagrangian(q[:2], qd[:2], t, args) - force * q[2]
+
+        rod = cjax.Holonomic(lambda q, t, args: pendulum.rod(q[:2], t, args))
+        return cjax.LagrangianSystem(lagrangian, rod)
+
+    args = pendulum.default_args()
+    q, qd = jnp.array([0.0, -1.0, 0.0]), jnp.zeros(3)
+    with pytest.raises(Exception, match="singular"):
+        cjax.linearize(system(2.0), q, qd, args=args)
+    eigenvalues = np.asarray(cjax.linearize(system(0.0), q, qd, args=args).eigenvalues)
+    omega = np.sqrt(9.81)
+    np.testing.assert_allclose(
+        np.sort(eigenvalues.imag), [-omega, 0, 0, omega], atol=1e-9
+    )
