@@ -54,13 +54,29 @@ class Reduction(eqx.Module):
         fn = lambda s_, t_: self.embedding(s_, t_, args)
         return jax.jvp(fn, (s, t), (sd, jnp.ones_like(t)))
 
-    def full_multipliers(self, s, sd, t, args=None) -> Float[Array, " k"]:
+    def full_multipliers(
+        self, s, sd, t, args=None, *, consistency_tol: float | None = None
+    ) -> Float[Array, " k"]:
         """The multipliers of the full system along the reduced motion.
 
         `qddot` comes from the reduced equations lifted by the embedding; then
         `lambda` solves `A^T lambda = M qddot - (Q - c)` in the least-squares sense
         (exactly, when the reduced motion satisfies the full equations).
+
+        Raises (at run time, also under `jit`) where these would not be the
+        multipliers of the full system: the lifted motion violates the full
+        system's constraints at the position, velocity or acceleration level (an
+        embedding that does not satisfy the constraints it eliminates, e.g. the
+        pendulum's circle drawn with the wrong radius), or `A^T lambda` cannot
+        balance `M qddot - (Q - c)` (the reduced motion does not satisfy the full
+        equations: a constraint eliminated that the full system does not have).
+        Tolerance: `consistency_tol` (`None`: `1e-8` in float64, as in
+        [`constrained_jax.simulate`][]), relative to the size of each quantity's
+        terms.
         """
+        return self._full_multipliers(s, sd, t, args, consistency_tol)
+
+    def _full_multipliers(self, s, sd, t, args, consistency_tol):
         t = jnp.asarray(t, jnp.result_type(s))
         sdd, _ = self.system.accelerations(s, sd, t, args)
 
@@ -68,12 +84,52 @@ class Reduction(eqx.Module):
             return self.lift(s_, sd_, t_, args)[1]
 
         q, qd = self.lift(s, sd, t, args)
+        if consistency_tol is None:
+            consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q.dtype)
         # qddot = d/dt (qdot) along (sdot, sddot, 1).
         _, qdd = jax.jvp(q_dot, (s, sd, t), (sd, sdd, jnp.ones_like(t)))
-        mass, rhs, jac, _, mismatch = self.full._equations(q, qd, t, args)
-        residual = as_dense(mass) @ qdd - rhs
-        lam, *_ = jnp.linalg.lstsq(as_dense(jac).T, residual)
-        return eqx.error_if(lam, mismatch, PATTERN_MISMATCH_MESSAGE)
+        mass, rhs, jac, bias, mismatch = self.full._equations(q, qd, t, args)
+        mass, jac = as_dense(mass), as_dense(jac)
+        residual = mass @ qdd - rhs
+        lam, *_ = jnp.linalg.lstsq(jac.T, residual)
+        # (Each check is attached to `qdd` too: `error_if` on an empty `lam` alone,
+        # a system without constraints, would never fire.)
+        lam, qdd = eqx.error_if((lam, qdd), mismatch, PATTERN_MISMATCH_MESSAGE)
+        # The lifted motion on the full constraints: positions and velocities as
+        # `simulate` checks a start, accelerations (`A qddot + bias = 0`) and the
+        # balance of forces row by row, each against the size of its terms.
+        position = self.full.holonomic_residual(q, t, args)
+        velocity = self.full.velocity_residual(q, qd, t, args)
+        acceleration = jac @ qdd + bias
+        acceleration_scale = jnp.abs(jac) @ jnp.abs(qdd) + jnp.abs(bias)
+        balance = jac.T @ lam - residual
+        balance_scale = (
+            jnp.abs(mass) @ jnp.abs(qdd) + jnp.abs(rhs) + jnp.abs(jac.T) @ jnp.abs(lam)
+        )
+        off = (
+            jnp.any(jnp.abs(position) > consistency_tol * (1 + jnp.max(jnp.abs(q))))
+            | jnp.any(jnp.abs(velocity) > consistency_tol * (1 + jnp.max(jnp.abs(qd))))
+            | jnp.any(jnp.abs(acceleration) > consistency_tol * acceleration_scale)
+        )
+        lam, qdd = eqx.error_if(
+            (lam, qdd),
+            off,
+            "`Reduction.full_multipliers`: the lifted motion q = phi(s, t) violates "
+            "the full system's constraints (at the position, velocity or "
+            "acceleration level, beyond `consistency_tol`): the embedding does not "
+            "satisfy the constraints it eliminates, so the reduced motion is not a "
+            "motion of the full system. Check `phi` (e.g. the radius of a circle).",
+        )
+        lam, _ = eqx.error_if(
+            (lam, qdd),
+            jnp.any(jnp.abs(balance) > consistency_tol * balance_scale),
+            "`Reduction.full_multipliers`: no multipliers balance the full "
+            "equations along the reduced motion (A^T lambda != M qddot - (Q - c) "
+            "beyond `consistency_tol`): the reduced motion does not satisfy the full "
+            "equations of motion (the embedding removes freedom that no constraint "
+            "of the full system removes).",
+        )
+        return lam
 
 
 @full_precision

@@ -171,3 +171,41 @@ def test_linearize_refuses_a_singular_kkt_matrix():
     np.testing.assert_allclose(
         np.sort(eigenvalues.imag), [-omega, 0, 0, omega], atol=1e-9
     )
+
+
+def _wrong_radius(s, t, args):
+    return 1.1 * _pendulum_embedding(s, t, args)
+
+
+def _horizontal_line(s, t, args):
+    # On the rod only at s = 0, where position and velocity hold but the
+    # acceleration does not (no centripetal term).
+    return jnp.stack([s[0], -args["l"] + 0.0 * s[0]])
+
+
+@pytest.mark.parametrize(
+    "embedding, s, message",
+    [
+        (_wrong_radius, 0.7, "violates the full system's constraints"),
+        (_horizontal_line, 0.0, "violates the full system's constraints"),
+    ],
+)
+def test_full_multipliers_refuse_an_embedding_off_the_constraints(
+    embedding, s, message
+):
+    """The multipliers from an embedding that does not satisfy the constraints it
+    eliminates used to come back without a word (-8.83 for a circle of radius 1.1 l,
+    against the tension's -8.71): refused."""
+    args = pendulum.default_args()
+    reduction = cjax.reduce(pendulum.system(), embedding)
+    with pytest.raises(Exception, match=message):
+        reduction.full_multipliers(jnp.array([s]), jnp.array([1.1]), 0.0, args)
+
+
+def test_full_multipliers_refuse_a_motion_the_full_system_does_not_have():
+    """A falling particle held on a horizontal line by an embedding that no
+    constraint of the full system imposes: no multipliers balance gravity."""
+    free = cjax.LagrangianSystem(lambda q, qd, t, a: 0.5 * qd @ qd - 9.81 * q[1])
+    reduction = cjax.reduce(free, lambda s, t, a: jnp.stack([s[0], 0.0 * s[0]]))
+    with pytest.raises(Exception, match="no multipliers balance"):
+        reduction.full_multipliers(jnp.array([0.3]), jnp.array([1.0]), 0.0)
