@@ -224,12 +224,28 @@ def first_integral(lagrangian: LagrangianFn) -> Callable:
 
 
 @eqx.filter_jit
-def _evaluate(discretization, interval, values, x, order: int, interior: bool):
-    """The interpolant through nodal `values` (or a derivative) at the points `x`."""
+def _evaluate(
+    discretization, interval, values, x, order: int, interior: bool, inside: bool
+):
+    """The interpolant through nodal `values` (or a derivative) at the points `x`;
+    with `inside`, NaN at points outside the interval (beyond round-off: `16 eps` of
+    the size of its ends), where the interpolant extrapolates and is not the
+    solution."""
     fn = lambda x_: discretization.interpolate(
         interval, values, x_, derivative=order, interior=interior
     )
-    out = jax.vmap(fn)(x.reshape(-1))
+    flat = x.reshape(-1)
+    out = jax.vmap(fn)(flat)
+    if inside:
+        xl, xr = (jnp.asarray(v, x.dtype) for v in interval)
+        lo, hi = jnp.minimum(xl, xr), jnp.maximum(xl, xr)
+        slack = (
+            16
+            * jnp.finfo(x.dtype).eps
+            * jnp.maximum(jnp.maximum(jnp.abs(lo), jnp.abs(hi)), hi - lo)
+        )
+        outside = (flat < lo - slack) | (flat > hi + slack)
+        out = jnp.where(outside.reshape((-1,) + (1,) * (out.ndim - 1)), jnp.nan, out)
     return out.reshape(x.shape + values.shape[1:])
 
 
@@ -237,7 +253,8 @@ class MultiplierFunction(eqx.Module):
     """A holonomic multiplier function `x -> lambda(x)`, shape `(m,)` (or scalar).
 
     Interpolates the multipliers at the interior nodes with the discretization's own
-    interpolant (extrapolated to the ends). `values` holds them at `nodes`.
+    interpolant (extrapolated to the ends). `values` holds them at `nodes`. NaN at
+    points outside the interval.
     """
 
     nodes: Float[Array, " M"]
@@ -247,7 +264,9 @@ class MultiplierFunction(eqx.Module):
 
     def __call__(self, x: ArrayLike) -> Float[Array, "..."]:
         x = jnp.asarray(x, self.values.dtype)
-        return _evaluate(self.discretization, self.interval, self.values, x, 0, True)
+        return _evaluate(
+            self.discretization, self.interval, self.values, x, 0, True, True
+        )
 
 
 class FunctionalMultipliers(eqx.Module):
@@ -282,7 +301,10 @@ class FunctionalSolution(eqx.Module):
         must not exceed for `result` to be `successful`).
 
     Call it, `sol(x)`, for the interpolant at any `x` in `[xL, xR]` (scalar or
-    array); `sol.derivative(x, order)` for its derivatives.
+    array); `sol.derivative(x, order)` for its derivatives. Both are NaN at points
+    outside `[xL, xR]` (beyond round-off), where the interpolant would extrapolate:
+    not the solution of the problem. (As a starting guess `y0` of another solve it
+    is evaluated as the interpolant everywhere, extrapolating.)
     """
 
     x: Float[Array, " N"]
@@ -299,7 +321,14 @@ class FunctionalSolution(eqx.Module):
         if not isinstance(order, int) or order < 0:
             raise ValueError(f"`order` must be a non-negative int, got {order!r}.")
         x = jnp.asarray(x, self.y.dtype)
-        return _evaluate(self.discretization, self.interval, self.y, x, order, False)
+        return _evaluate(
+            self.discretization, self.interval, self.y, x, order, False, True
+        )
+
+    def _extrapolated(self, x):
+        """The interpolant at `x`, extrapolating outside `[xL, xR]` (a start)."""
+        x = jnp.asarray(x, self.y.dtype)
+        return _evaluate(self.discretization, self.interval, self.y, x, 0, False, False)
 
     def __call__(self, x: ArrayLike) -> Float[Array, "..."]:
         return self.derivative(x, order=0)
@@ -827,7 +856,9 @@ def solve_functional(
         # argument of it, so every new function (a fresh closure per call) would
         # compile the whole solve again. Values at the nodes are traced.
         nodes = discretization.nodes(functional.interval)
-        y0 = jax.vmap(lambda x: jnp.asarray(y0(x)))(nodes)
+        # (A solution of another interval, as a start, extrapolates.)
+        start = y0._extrapolated if isinstance(y0, FunctionalSolution) else y0
+        y0 = jax.vmap(lambda x: jnp.asarray(start(x)))(nodes)
     dtype = (
         functional.boundary[0].dtype
         if isinstance(functional, Functional)

@@ -153,3 +153,28 @@ def test_jit_of_errors_is_trace_time():
     )
     with pytest.raises(ValueError, match="must return a scalar"):
         jax.jit(lambda: cjax.solve_functional(fun, discretization=_SMALL))()
+
+
+@pytest.mark.parametrize("discretization", [_SMALL, cjax.Chebyshev(12)])
+def test_solution_is_nan_outside_its_interval(discretization):
+    """`sol(x)` outside [xL, xR] extrapolated without a word (the rope at x = 2 was
+    3.76 above its ends, with a spectral interpolant): NaN there; the ends and the
+    inside as before (the nodal values at the nodes). As the start `y0` of another
+    solve (a continuation in the length, on other nodes) it works as before."""
+    args = {"rho_g": 1.0, "length": 1.5}
+    sol = cjax.solve_functional(_rope(), args, discretization=discretization, y0=_GUESS)
+    assert sol.result == cjax.RESULTS.successful
+    xs = jnp.array([-1.0, -1e-9, 1.0 + 1e-9, 2.0])
+    assert np.all(np.isnan(sol(xs))) and np.all(np.isnan(sol.derivative(xs)))
+    np.testing.assert_allclose(sol(sol.x), sol.y, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(sol(jnp.array([0.0, 1.0])), 0.0, atol=1e-14)
+    assert np.all(np.isfinite(sol.derivative(jnp.linspace(0.0, 1.0, 7))))
+    args = {"rho_g": 1.0, "length": 1.55}
+    moved = cjax.solve_functional(
+        _rope(), args, discretization=cjax.Chebyshev(24), y0=sol
+    )
+    assert moved.result == cjax.RESULTS.successful
+    ref = cat.closed_form(0.0, 0.0, 1.0, 0.0, 1.55)
+    np.testing.assert_allclose(
+        moved.multipliers.integral[0], ref["multiplier"], rtol=1e-9
+    )
