@@ -109,17 +109,51 @@ class Trajectory(eqx.Module):
 
 @full_precision
 def consistent_initial_state(
-    system: LagrangianSystem, q0, qd0, t0=0.0, args=None, *, iterations: int = 8
+    system: LagrangianSystem,
+    q0,
+    qd0,
+    t0=0.0,
+    args=None,
+    *,
+    iterations: int = 8,
+    consistency_tol: float | None = None,
 ):
     """Project `(q0, qd0)` onto the constraint manifold, in the kinetic-energy metric.
 
     Positions by Gauss-Newton on the holonomic constraints (the smallest correction in
     the metric of `M`), velocities onto `A qdot + a = 0`. Returns `(q0, qd0)`.
+
+    Raises (at run time, also under `jit`) if the projected state still violates the
+    constraints beyond `consistency_tol` (the test of
+    [`constrained_jax.simulate`][], with its default), or is not finite: the
+    constraint Jacobian is singular at or near `q0` (the pendulum's rod `r = l` at
+    the origin, where it used to return the origin unchanged), `q0` is too far for
+    `iterations` Gauss-Newton steps, or the constraints have no solution near `q0`.
     """
     q0 = inexact_asarray(q0)
     qd0 = jnp.asarray(qd0, q0.dtype)
     system.check(q0, qd0, t0, args)
-    return project_state(system, q0, qd0, jnp.asarray(t0, q0.dtype), args, iterations)
+    if consistency_tol is None:
+        consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q0.dtype)
+    t0 = jnp.asarray(t0, q0.dtype)
+    q, qd = project_state(system, q0, qd0, t0, args, iterations)
+    position = system.holonomic_residual(q, t0, args)
+    velocity = system.velocity_residual(q, qd, t0, args)
+    bad = (
+        jnp.invert(all_finite((q, qd)))
+        | jnp.any(jnp.abs(position) > consistency_tol * (1 + jnp.max(jnp.abs(q))))
+        | jnp.any(jnp.abs(velocity) > consistency_tol * (1 + jnp.max(jnp.abs(qd))))
+    )
+    return eqx.error_if(
+        (q, qd),
+        bad,
+        "`consistent_initial_state`: the projected state still violates the "
+        "constraints (beyond `consistency_tol`) or is not finite. The constraint "
+        "Jacobian may be singular at or near `q0` (e.g. the pendulum's rod at the "
+        "origin), `q0` too far from the constraint surface for `iterations` "
+        "Gauss-Newton steps (raise it), or the constraints without a solution near "
+        "`q0`. Start nearer to the constraint surface.",
+    )
 
 
 def _solve_accelerations(system, q, qd, t, args, bias_correction=None):

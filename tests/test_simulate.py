@@ -218,6 +218,23 @@ def test_inconsistent_initial_state():
     assert traj.result == cjax.RESULTS.successful
 
 
+def test_consistent_initial_state_refuses_what_it_cannot_project():
+    """At the origin the rod's Jacobian vanishes and no Gauss-Newton step moves: the
+    origin used to come back unchanged (G = -l) without a word. Refused at run time,
+    also under `jit`; from a far start (|q0| = 1e6 l) it converges."""
+    system = pendulum.system()
+    args = pendulum.default_args()
+    project = jax.jit(
+        lambda q0, qd0: cjax.consistent_initial_state(system, q0, qd0, 0.0, args)
+    )
+    with pytest.raises(Exception, match="still violates"):
+        jax.block_until_ready(project(jnp.zeros(2), jnp.array([0.3, 0.4])))
+    q0c, qd0c = project(jnp.array([1e6, -1e6]), jnp.array([0.3, 0.4]))
+    np.testing.assert_allclose(jnp.linalg.norm(q0c), args["l"], rtol=1e-12)
+    np.testing.assert_allclose(q0c, jnp.array([1.0, -1.0]) / jnp.sqrt(2.0))
+    np.testing.assert_allclose(jnp.dot(q0c, qd0c), 0.0, atol=1e-12)
+
+
 def test_nan_parameters_and_step_budget():
     system = pendulum.system()
     args = pendulum.default_args()
