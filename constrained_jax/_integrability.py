@@ -39,7 +39,12 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._constraints import AbstractConstraint, Holonomic
 from ._custom_types import Args, ScalarLike
-from ._misc import as_traced_args, default_float_dtype, full_precision
+from ._misc import (
+    all_finite,
+    as_traced_args,
+    default_float_dtype,
+    full_precision,
+)
 
 
 # ---------------------------------------------------------------------------------
@@ -196,10 +201,10 @@ def _exterior_jit(constraint, q, t, args):
 
 
 def _exact_at(constraint, q, t, args, rtol, atol):
-    _, jac = _form_and_derivative(constraint, q, t, args)
+    w, jac = _form_and_derivative(constraint, q, t, args)
     violation = jnp.max(jnp.abs(_exterior(jac)), axis=(1, 2))
     scale = jnp.max(jnp.abs(jac), axis=(1, 2))
-    return violation <= atol + rtol * scale
+    return violation <= atol + rtol * scale, all_finite((w, jac))
 
 
 def _integrable_at(constraint, q, t, args, rtol, atol):
@@ -210,7 +215,7 @@ def _integrable_at(constraint, q, t, args, rtol, atol):
     restricted = proj @ ext @ proj  # d omega_j restricted to D, for every j
     violation = jnp.max(jnp.abs(restricted), axis=(1, 2))
     scale = jnp.max(jnp.abs(jac), axis=(1, 2))
-    return violation <= atol + rtol * scale
+    return violation <= atol + rtol * scale, all_finite((w, jac))
 
 
 def _pointwise(test, constraint, q, t, args, rtol, atol, fn_name):
@@ -225,8 +230,19 @@ def _pointwise(test, constraint, q, t, args, rtol, atol, fn_name):
 def _pointwise_jit(test, constraint, q, t, args, rtol, atol):
     at = lambda q_, t_: test(constraint, q_, t_, args, rtol, atol)
     if q.ndim == 2:  # sample points: the row must pass at every one
-        return jnp.all(jax.vmap(at)(q, t), axis=0)
-    return at(q, t)
+        flags, finite = jax.vmap(at)(q, t)
+        flags, finite = jnp.all(flags, axis=0), jnp.all(finite)
+    else:
+        flags, finite = at(q, t)
+    # A comparison with NaN is false: without this a non-finite point would "prove"
+    # that a row is not exact (or not integrable).
+    return eqx.error_if(
+        flags,
+        jnp.invert(finite),
+        "The form or its derivatives are NaN or inf at a sample point (q, t) (or q, "
+        "t, args are): the test cannot decide there. Drop such points (e.g. a "
+        "singular point of the form).",
+    )
 
 
 @full_precision

@@ -433,3 +433,25 @@ def test_bad_structure():
         hol.fn(jnp.zeros(4), jnp.asarray(0.0), args)
     with pytest.raises(ValueError, match="scalar"):
         hol.fn(q, jnp.zeros(2), args)
+
+
+def test_non_finite_point_is_refused():
+    """A comparison with NaN is false: at a NaN point (or where the form is not
+    finite, the angle form at the origin) an exact form was reported not exact and
+    not integrable, which a `False` claims to prove. Refused at run time instead; the
+    finite points of the same forms as before."""
+    exact = Pfaffian(lambda q, t, args: 2 * q[None])
+    angle = Pfaffian(
+        lambda q, t, args: (jnp.stack([-q[1], q[0]]) / (q[0] ** 2 + q[1] ** 2))[None]
+    )
+    good = jnp.array([[0.3, 0.4], [1.0, -2.0]])
+    assert bool(is_exact(exact, good)[0]) and bool(is_integrable(exact, good)[0])
+    assert bool(is_exact(angle, good)[0])
+    for form, q in [
+        (exact, jnp.array([jnp.nan, 0.4])),
+        (exact, good.at[1, 0].set(jnp.inf)),
+        (angle, jnp.zeros(2)),
+    ]:
+        for test in (is_exact, is_integrable):
+            with pytest.raises(Exception, match="cannot decide"):
+                jax.block_until_ready(test(form, q))
