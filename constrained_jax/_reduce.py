@@ -31,7 +31,7 @@ from ._misc import (
     full_precision,
 )
 from ._solver.sparse import as_dense
-from ._system import LagrangianSystem, PATTERN_MISMATCH_MESSAGE
+from ._system import LagrangianSystem, off_constraints, PATTERN_MISMATCH_MESSAGE
 
 
 class Reduction(eqx.Module):
@@ -98,18 +98,14 @@ class Reduction(eqx.Module):
         # The lifted motion on the full constraints: positions and velocities as
         # `simulate` checks a start, accelerations (`A qddot + bias = 0`) and the
         # balance of forces row by row, each against the size of its terms.
-        position = self.full.holonomic_residual(q, t, args)
-        velocity = self.full.velocity_residual(q, qd, t, args)
         acceleration = jac @ qdd + bias
         acceleration_scale = jnp.abs(jac) @ jnp.abs(qdd) + jnp.abs(bias)
         balance = jac.T @ lam - residual
         balance_scale = (
             jnp.abs(mass) @ jnp.abs(qdd) + jnp.abs(rhs) + jnp.abs(jac.T) @ jnp.abs(lam)
         )
-        off = (
-            jnp.any(jnp.abs(position) > consistency_tol * (1 + jnp.max(jnp.abs(q))))
-            | jnp.any(jnp.abs(velocity) > consistency_tol * (1 + jnp.max(jnp.abs(qd))))
-            | jnp.any(jnp.abs(acceleration) > consistency_tol * acceleration_scale)
+        off = off_constraints(self.full, q, qd, t, args, consistency_tol) | jnp.any(
+            jnp.abs(acceleration) > consistency_tol * acceleration_scale
         )
         lam, qdd = eqx.error_if(
             (lam, qdd),
@@ -253,11 +249,7 @@ def linearize(
         jnp.invert(finite),
         "`linearize`: `q_eq`, `qd_eq`, `t` or `args` contain NaN or inf.",
     )
-    position = system.holonomic_residual(q_eq, t, args)
-    velocity = system.velocity_residual(q_eq, qd_eq, t, args)
-    off = jnp.any(
-        jnp.abs(position) > consistency_tol * (1 + jnp.max(jnp.abs(q_eq)))
-    ) | jnp.any(jnp.abs(velocity) > consistency_tol * (1 + jnp.max(jnp.abs(qd_eq))))
+    off = off_constraints(system, q_eq, qd_eq, t, args, consistency_tol)
     q_eq, qd_eq = eqx.error_if(
         (q_eq, qd_eq),
         off,

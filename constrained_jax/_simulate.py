@@ -36,7 +36,7 @@ from ._misc import (
 )
 from ._results import raise_if_failed, RESULTS
 from ._stabilization import AbstractStabilization, project_state, Unstabilized
-from ._system import LagrangianSystem
+from ._system import LagrangianSystem, off_constraints
 from ._variational_integrator import (
     AbstractVariationalIntegrator,
     integrate_variational,
@@ -137,12 +137,8 @@ def consistent_initial_state(
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q0.dtype)
     t0 = jnp.asarray(t0, q0.dtype)
     q, qd = project_state(system, q0, qd0, t0, args, iterations)
-    position = system.holonomic_residual(q, t0, args)
-    velocity = system.velocity_residual(q, qd, t0, args)
-    bad = (
-        jnp.invert(all_finite((q, qd)))
-        | jnp.any(jnp.abs(position) > consistency_tol * (1 + jnp.max(jnp.abs(q))))
-        | jnp.any(jnp.abs(velocity) > consistency_tol * (1 + jnp.max(jnp.abs(qd))))
+    bad = jnp.invert(all_finite((q, qd))) | off_constraints(
+        system, q, qd, t0, args, consistency_tol
     )
     return eqx.error_if(
         (q, qd),
@@ -1627,11 +1623,9 @@ def _simulate(
     start_ok = all_finite((q0, qd0, args, t0, t1))
     modes = mode0 = None
     if max_events is None:
-        position = system.holonomic_residual(q0, t0, args)
-        velocity = system.velocity_residual(q0, qd0, t0, args)
-        consistent = jnp.all(
-            jnp.abs(position) <= consistency_tol * (1 + jnp.max(jnp.abs(q0)))
-        ) & jnp.all(jnp.abs(velocity) <= consistency_tol * (1 + jnp.max(jnp.abs(qd0))))
+        consistent = jnp.invert(
+            off_constraints(system, q0, qd0, t0, args, consistency_tol)
+        )
     else:
         modes = build_modes(system, q0.shape[0], args, q0.dtype)
         mode0, consistent = _initial_mode(modes, q0, qd0, t0, args, consistency_tol)

@@ -53,6 +53,20 @@ PATTERN_MISMATCH_MESSAGE = (
 _UNROLL = 24
 
 
+def off_constraints(system, q, qd, t, args, tol) -> Bool[Array, ""]:
+    """Whether `(q, qd)` violates the holonomic constraints or `A qd + a = 0` beyond
+    `tol`, relative to `1 + max|q|` and `1 + max|qd|`: the test `simulate` makes of
+    its start (`consistency_tol`), also used by `consistent_initial_state`,
+    `linearize` and `Reduction.full_multipliers`. A NaN residual (a constraint
+    Jacobian not defined there) counts as a violation."""
+    position = system.holonomic_residual(q, t, args)
+    velocity = system.velocity_residual(q, qd, t, args)
+    on = jnp.all(jnp.abs(position) <= tol * (1 + jnp.max(jnp.abs(q)))) & jnp.all(
+        jnp.abs(velocity) <= tol * (1 + jnp.max(jnp.abs(qd)))
+    )
+    return jnp.invert(on)
+
+
 def _push(fn, primals, tangents: list):
     """`(fn(*primals), [jvp of fn along each tangent])`: one linearisation, then the
     linear map applied to each tangent (unrolled when few, else vmapped)."""
