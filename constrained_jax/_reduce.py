@@ -74,9 +74,6 @@ class Reduction(eqx.Module):
         [`constrained_jax.simulate`][]), relative to the size of each quantity's
         terms.
         """
-        return self._full_multipliers(s, sd, t, args, consistency_tol)
-
-    def _full_multipliers(self, s, sd, t, args, consistency_tol):
         t = jnp.asarray(t, jnp.result_type(s))
         sdd, _ = self.system.accelerations(s, sd, t, args)
 
