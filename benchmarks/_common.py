@@ -150,3 +150,15 @@ def machine_info(**versions: str) -> dict:
         },
         "git": commit,
     }
+
+
+def write_cases(path, cases: dict) -> None:
+    """Writes `{"machine": machine_info(), "cases": cases}` as JSON to `path` (a
+    `pathlib.Path`, its folder created) and says so."""
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        json.dumps({"machine": machine_info(), "cases": cases}, indent=2) + "\n"
+    )
+    print(f"wrote {path}")

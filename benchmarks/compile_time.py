@@ -18,7 +18,6 @@ Writes `benchmarks/results/compile_time.json`.
 """
 
 import argparse
-import json
 import re
 import statistics
 import time
@@ -31,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _common import machine_info  # noqa: E402
+from _common import write_cases  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
 from constrained_jax.scenes import (  # noqa: E402
@@ -212,11 +211,7 @@ def main():
             f"{r['hlo_while']} while, {r['hlo_conditional']} conditional, "
             f"Lagrangian traced {r['lagrangian_traces']} times"
         )
-    ns.out.parent.mkdir(parents=True, exist_ok=True)
-    ns.out.write_text(
-        json.dumps({"machine": machine_info(), "cases": results}, indent=2) + "\n"
-    )
-    print(f"wrote {ns.out}")
+    write_cases(ns.out, results)
 
 
 if __name__ == "__main__":

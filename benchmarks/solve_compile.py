@@ -24,8 +24,6 @@ Writes `benchmarks/results/solve_compile.json`.
 """
 
 import argparse
-import json
-import re
 import statistics
 import time
 from pathlib import Path
@@ -36,7 +34,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
-from _common import machine_info  # noqa: E402
+from _common import write_cases  # noqa: E402
+from compile_time import hlo_counts  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
 from constrained_jax._solver import diagonal  # noqa: E402
@@ -44,11 +43,6 @@ from constrained_jax.scenes import two_cylinders  # noqa: E402
 
 
 RESULTS = Path(__file__).parent / "results" / "solve_compile.json"
-
-
-def _instructions(compiled) -> int:
-    pattern = re.compile(r"\s+(ROOT )?%?[\w.\-]+ = ")
-    return sum(1 for line in compiled.as_text().splitlines() if pattern.match(line))
 
 
 def _cases(system):
@@ -99,17 +93,13 @@ def main():
         results[name] = {
             "compile_s": statistics.median(times),
             "times_s": times,
-            "hlo_instructions": _instructions(compiled),
+            "hlo_instructions": hlo_counts(compiled.as_text())["hlo_instructions"],
         }
         print(
             f"{name:32s} compile {results[name]['compile_s']:.3f} s, "
             f"{results[name]['hlo_instructions']} HLO instructions"
         )
-    ns.out.parent.mkdir(parents=True, exist_ok=True)
-    ns.out.write_text(
-        json.dumps({"machine": machine_info(), "cases": results}, indent=2) + "\n"
-    )
-    print(f"wrote {ns.out}")
+    write_cases(ns.out, results)
 
 
 if __name__ == "__main__":
