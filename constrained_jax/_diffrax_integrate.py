@@ -47,8 +47,10 @@ import threading
 import types
 
 import diffrax
+import equinox as eqx
 import equinox.internal as eqxi
 import jax
+import jax.numpy as jnp
 
 
 _TESTED = ("0.7.2",)
@@ -154,3 +156,35 @@ def diffeqsolve(*args, save_times_checked: bool = False, **kwargs):
     span, as diffrax compares them)."""
     with _scoped(save_times_checked):
         return diffrax.diffeqsolve(*args, **kwargs)
+
+
+# The smallest step an adaptive controller may take, in units of eps |t|. (SciPy's
+# `solve_ivp` stops at 10 ULP of `t` the same way.)
+_STEP_FLOOR = 16
+
+
+def step_floor(stepsize_controller, t0, t1):
+    """A `PIDController` without `dtmin` gets one at `_STEP_FLOOR eps max(|t0|, |t1|)`,
+    not forced: a step that shrinks below it fails (diffrax's `dt_min_reached`, which
+    `simulate` and `solve_shooting` report as `RESULTS.step_size_underflow`). A vector
+    field that is NaN just ahead of the state (singular dynamics, a solution that
+    blows up) has every step rejected and the step shrinking by `factormin` each time:
+    without a floor the solve went on to `max_steps` (which a `jax.vmap` batch waits
+    for), with it it stops after about 20 rejections. Returns the controller, and
+    whether the floor is ours."""
+    if not (
+        isinstance(stepsize_controller, diffrax.PIDController)
+        and stepsize_controller.dtmin is None
+    ):
+        return stepsize_controller, False
+    eps = jnp.finfo(t0.dtype).eps
+    dtmin = jax.lax.stop_gradient(
+        _STEP_FLOOR * eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
+    )
+    floored = eqx.tree_at(
+        lambda c: (c.dtmin, c.force_dtmin),
+        stepsize_controller,
+        (dtmin, False),
+        is_leaf=lambda x: x is None,
+    )
+    return floored, True

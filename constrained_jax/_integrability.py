@@ -34,6 +34,7 @@ only on the samples, not proven.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
@@ -372,6 +373,70 @@ def is_integrable(
 # ---------------------------------------------------------------------------------
 
 
+def _form_at(constraint, q, t, args):
+    """`(g, h)` at `(q, t)`, with `h` broadcast to shape `(k,)` in the dtype of `g`."""
+    g, h = constraint.velocity_form(q, t, args)
+    return g, jnp.broadcast_to(h, g.shape[:1]).astype(g.dtype)
+
+
+def _quadrature(q, t, q_ref, t_ref, rest):
+    """The segment integral by the two Gauss-Legendre rules of `rest`, with the
+    refusal: NaN in row `j` where the rules differ by more than `rtol` times the
+    integral of `|omega_j|` along the segment."""
+    constraint, args, nodes, weights, check_nodes, check_weights, rtol = rest
+    dq, dt = q - q_ref, t - t_ref
+
+    def integrand(s):
+        g, h = _form_at(constraint, q_ref + s * dq, t_ref + s * dt, args)
+        return g @ dq + h * dt
+
+    values = jax.vmap(integrand)(jnp.concatenate([nodes, check_nodes]))
+    values, check_values = values[: nodes.shape[0]], values[nodes.shape[0] :]
+    integral = weights @ values
+    estimate = jnp.abs(integral - check_weights @ check_values)
+    scale = weights @ jnp.abs(values)
+    # `<=` is false for NaN, so a non-finite integrand is refused too; a zero-length
+    # segment (estimate 0 <= 0) is not.
+    return jnp.where(estimate <= rtol * scale, integral, jnp.nan)
+
+
+@eqx.filter_custom_jvp
+def _potential(q, t, q_ref, t_ref, rest):
+    return _quadrature(q, t, q_ref, t_ref, rest)
+
+
+@_potential.def_jvp
+def _potential_jvp(primals, tangents):
+    # The Poincare lemma, exactly: dG = g dq + h dt - g_ref dq_ref - h_ref dt_ref, by
+    # the form itself and not by differentiating the quadrature (whose derivative
+    # equals the form only to the quadrature's error). Derivatives with respect to
+    # `args` (or arrays inside the constraint) go through the quadrature.
+    q, t, q_ref, t_ref, rest = primals
+    tq, tt, tq_ref, tt_ref, t_rest = tangents
+    constraint, args = rest[0], rest[1]
+    out = _potential(q, t, q_ref, t_ref, rest)
+    t_out = jnp.zeros_like(out)
+    for point, time, t_point, t_time, sign in (
+        (q, t, tq, tt, 1),
+        (q_ref, t_ref, tq_ref, tt_ref, -1),
+    ):
+        if t_point is not None or t_time is not None:
+            g, h = _form_at(constraint, point, time, args)
+            if t_point is not None:
+                t_out = t_out + sign * (g @ t_point)
+            if t_time is not None:
+                t_out = t_out + sign * h * t_time
+    differentiated = jtu.tree_map(
+        lambda x: x is not None, t_rest, is_leaf=lambda x: x is None
+    )
+    if any(jtu.tree_leaves(differentiated)):
+        diff, nondiff = eqx.partition(rest, differentiated)
+        t_diff = eqx.filter(t_rest, differentiated, is_leaf=lambda x: x is None)
+        integral = lambda d: _quadrature(q, t, q_ref, t_ref, eqx.combine(d, nondiff))
+        t_out = t_out + jax.jvp(integral, (diff,), (t_diff,))[1]
+    return out, t_out
+
+
 class _SegmentIntegral(eqx.Module):
     """`G_j(q, t)`: the integral of `omega_j` on the segment from `(q_ref, t_ref)`."""
 
@@ -380,6 +445,9 @@ class _SegmentIntegral(eqx.Module):
     t_ref: Float[Array, ""]
     nodes: Float[Array, " p"]  # Gauss-Legendre nodes mapped to [0, 1]
     weights: Float[Array, " p"]  # the matching weights, summing to 1
+    check_nodes: Float[Array, " r"]  # the rule one order lower (the error estimate)
+    check_weights: Float[Array, " r"]
+    rtol: float | None = eqx.field(static=True)
 
     def __call__(self, q, t, args) -> Float[Array, " k"]:
         q = _as_float(q, "q")
@@ -396,17 +464,18 @@ class _SegmentIntegral(eqx.Module):
         if t.ndim != 0:
             raise ValueError(f"`t` must be a scalar, got shape {t.shape}.")
         dtype = q.dtype
-        t = t.astype(dtype)
-        q_ref, t_ref = self.q_ref.astype(dtype), self.t_ref.astype(dtype)
-        nodes, weights = self.nodes.astype(dtype), self.weights.astype(dtype)
-        dq, dt = q - q_ref, t - t_ref
-
-        def integrand(s):
-            g, h = self.constraint.velocity_form(q_ref + s * dq, t_ref + s * dt, args)
-            h = jnp.broadcast_to(h, g.shape[:1]).astype(g.dtype)
-            return g @ dq + h * dt
-
-        return weights @ jax.vmap(integrand)(nodes)
+        rtol = _default_rtol(self.rtol, dtype)
+        cast = lambda x: x.astype(dtype)
+        rest = (
+            self.constraint,
+            args,
+            cast(self.nodes),
+            cast(self.weights),
+            cast(self.check_nodes),
+            cast(self.check_weights),
+            jnp.asarray(rtol, dtype),
+        )
+        return _potential(q, t.astype(dtype), cast(self.q_ref), cast(self.t_ref), rest)
 
 
 @full_precision
@@ -417,6 +486,7 @@ def integrate_pfaffian(
     args: Args = None,
     *,
     num_points: int = 16,
+    rtol: float | None = None,
 ) -> Holonomic:
     """Integrate exact Pfaffian constraints to holonomic ones `G_j(q, t) = 0`.
 
@@ -430,11 +500,28 @@ def integrate_pfaffian(
         x(s) = q_ref + s (q - q_ref),    tau(s) = t_ref + s (t - t_ref),
 
     by Gauss-Legendre quadrature of fixed order `num_points` on the segment. Then
-    `G_j(q_ref, t_ref) = 0`, `dG_j/dq_sigma = g_{j sigma}` and `dG_j/dt = h_j` (the
-    Poincare lemma). The quadrature is exact when the integrand is a polynomial of
-    degree `<= 2 num_points - 1` in `s` (for polynomial `g`, `h` of that degree in
-    `(q, t)`), and converges spectrally (geometrically in `num_points`) for analytic
+    `G_j(q_ref, t_ref) = 0`, and the derivatives are the form itself, exactly:
+    `dG_j/dq_sigma = g_{j sigma}` and `dG_j/dt = h_j` (the Poincare lemma; the
+    derivatives, of every order, are computed from `g` and `h`, not through the
+    quadrature, so the constraint's Jacobian and acceleration bias in
+    [`constrained_jax.simulate`][] carry no quadrature error and cost one evaluation
+    of the form). Derivatives with respect to `args` go through the quadrature.
+
+    The quadrature is exact when the integrand is a polynomial of degree
+    `<= 2 num_points - 1` in `s` (for polynomial `g`, `h` of that degree in `(q, t)`),
+    and converges spectrally (geometrically in `num_points`) for analytic
     coefficients; long segments over oscillatory coefficients need more points.
+
+    **Right or refused.** Every evaluation also applies the rule with
+    `num_points - 1` nodes (the trapezoid rule when `num_points = 1`), and row `j` of
+    `G` is NaN where the two differ by more than `rtol` times the integral of
+    `|omega_j|` along the segment: the quadrature does not resolve the form there.
+    Since the difference estimates the error of the *lower* rule, a value that is
+    returned is accurate well below `rtol` (relative to that scale) for analytic
+    coefficients. A NaN `G` makes [`constrained_jax.simulate`][] refuse the start
+    (`RESULTS.inconsistent_initial_state`) or the step; raise `num_points` (or
+    choose `q_ref` near the motion). Cost: `2 num_points - 1` evaluations of the
+    form per value of `G`.
 
     **Arguments:**
 
@@ -447,6 +534,9 @@ def integrate_pfaffian(
         shapes of `g` and `h`. The returned constraint takes its own `args` at call
         time.
     - `num_points`: the number of Gauss-Legendre nodes (static).
+    - `rtol`: the refusal threshold above (static); defaults to `sqrt(eps)` of the
+        dtype of `q`. `rtol=float("inf")` turns the refusal off (NaN integrands
+        still give NaN).
 
     **Returns:**
 
@@ -477,12 +567,24 @@ def integrate_pfaffian(
             f"`q_ref` must be one point of shape (n,); got shape {q_ref.shape}."
         )
     _check_form(constraint, q_ref.shape[0], q_ref.dtype, args)
+    if rtol is not None and not (isinstance(rtol, (int, float)) and rtol >= 0):
+        raise ValueError(f"`rtol` must be a non-negative float or None, got {rtol!r}.")
     nodes, weights = np.polynomial.legendre.leggauss(int(num_points))
+    if num_points > 1:
+        check_nodes, check_weights = np.polynomial.legendre.leggauss(
+            int(num_points) - 1
+        )
+    else:
+        check_nodes, check_weights = np.array([-1.0, 1.0]), np.array([1.0, 1.0])
+    as_unit = lambda x: jnp.asarray(x, q_ref.dtype)
     integral = _SegmentIntegral(
         constraint,
         q_ref,
         t_ref,
-        jnp.asarray((nodes + 1) / 2, q_ref.dtype),
-        jnp.asarray(weights / 2, q_ref.dtype),
+        as_unit((nodes + 1) / 2),
+        as_unit(weights / 2),
+        as_unit((check_nodes + 1) / 2),
+        as_unit(check_weights / 2),
+        None if rtol is None else float(rtol),
     )
     return Holonomic(integral)

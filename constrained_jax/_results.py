@@ -77,6 +77,15 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "`diffrax.PIDController`), or `cjax.Projection()`; with `cjax.Baumgarte`, "
         "smaller gains."
     )
+    step_size_underflow = (
+        "The adaptive step size fell below round-off (16 eps of |t|), where no step "
+        "can pass the error test: the vector field is not finite just ahead of the "
+        "state (NaN from the Lagrangian, the forces or a constraint, e.g. an "
+        "`integrate_pfaffian` constraint where its quadrature is refused; or a "
+        "solution that blows up), or the equations are too stiff for the solver (try "
+        "an implicit one, e.g. `diffrax.Kvaerno5()`). The run stopped there instead "
+        "of spending `max_steps` on rejected steps."
+    )
     release_missed = (
         "The watched multiplier of a `cjax.Unilateral` constraint changed sign inside "
         "a fixed step (both ends of the step kept its sign), so the release cannot be "

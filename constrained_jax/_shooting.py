@@ -27,7 +27,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike
 
 from ._custom_types import Args
-from ._diffrax_integrate import diffeqsolve
+from ._diffrax_integrate import diffeqsolve, step_floor
 from ._discretization import Chebyshev
 from ._functional import (
     Functional,
@@ -35,7 +35,7 @@ from ._functional import (
     FunctionalSolution,
 )
 from ._implicit import nan_derivatives_if_failed
-from ._misc import as_traced_args, check_max_steps, full_precision
+from ._misc import all_finite, as_traced_args, check_max_steps, full_precision
 from ._results import raise_if_failed, RESULTS
 
 
@@ -93,6 +93,16 @@ def solve_shooting(
 
         Derivatives: forward mode only (the ODE solves use `diffrax.ForwardMode`,
         which the Newton iteration needs for its Jacobian).
+
+    !!! note "A start far from the solution"
+
+        Each trial integrates from `xL` to `xR` (at most 100,000 steps, with a floor
+        on the step at `16 eps max(|xL|, |xR|)`). A trial that does not reach `xR`
+        (its solution blows up, or needs more steps) gives a NaN residual, and the
+        solve is refused (`RESULTS.nonfinite`), as is one that reaches a NaN
+        iterate; such trials cost no integration after that (a `jax.vmap` batch
+        does not wait on them). Newton is undamped: start near the solution (e.g.
+        from a coarse [`constrained_jax.solve_functional`][]).
     """
     args = as_traced_args(args)
     sol = _solve_shooting(
@@ -176,21 +186,40 @@ def _solve_shooting(
         return yp, ypp, integrals, value
 
     term = diffrax.ODETerm(vector_field)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    # A floor on the step: a trial slope whose solution blows up (or turns NaN)
+    # before `xR` stops after about 20 rejected steps instead of running each Newton
+    # step's integration to its 100,000 steps.
+    controller, _ = step_floor(
+        diffrax.PIDController(rtol=rtol, atol=atol),
+        jnp.asarray(xl, dtype),
+        jnp.asarray(xr, dtype),
+    )
 
-    def integrate(unknowns, a, saveat):
+    x_left, x_right = jnp.asarray(xl, dtype), jnp.asarray(xr, dtype)
+
+    def integrate(unknowns, a, ts=None):
+        """The states at `xR` (`ts=None`) or at `ts`, and diffrax's result. A trial
+        with NaN or inf (a Newton iterate after a blow-up, a lane of a batch that has
+        stopped) integrates the empty span and returns NaN: its steps would all be
+        rejected up to `max_steps`, and under `jax.vmap` the other lanes wait. A
+        solve that fails returns NaN too."""
         slope, lam = unknowns
+        ok = all_finite((unknowns, a))
         state0 = (
             yl.reshape(n),
             slope.reshape(n),
             jnp.zeros((k,), dtype),
             jnp.zeros((), dtype),
         )
-        return diffeqsolve(
+        if ts is None:
+            saveat = diffrax.SaveAt(t1=True)
+        else:
+            saveat = diffrax.SaveAt(ts=jnp.where(ok, ts, x_left))
+        sol = diffeqsolve(
             term,
             ode_solver,
-            xl,
-            xr,
+            x_left,
+            jnp.where(ok, x_right, x_left),
             None,
             state0,
             (lam, a),
@@ -203,10 +232,15 @@ def _solve_shooting(
             # (diffrax's checks), so the program can be cached.
             save_times_checked=True,
         )
+        # A solve that stopped short of `xR` (`max_steps`, the step floor) returns
+        # the state where it stopped: as a residual at `xR` that would be wrong.
+        reached = ok & (sol.result == diffrax.RESULTS.successful)
+        ys = jax.tree.map(lambda v: jnp.where(reached, v, jnp.nan), sol.ys)
+        return ys, sol.result
 
     def residual(unknowns, a):
-        sol = integrate(unknowns, a, diffrax.SaveAt(t1=True))
-        y, _, integrals, _ = jax.tree.map(lambda v: v[-1], sol.ys)
+        ys, _ = integrate(unknowns, a)
+        y, _, integrals, _ = jax.tree.map(lambda v: v[-1], ys)
         targets = (
             jnp.stack([c.target(a, dtype) for c in functional.integral_constraints])
             if k
@@ -222,11 +256,14 @@ def _solve_shooting(
         max_steps=max_steps,
         throw=False,
     )
-    final = integrate(root.value, args, diffrax.SaveAt(ts=nodes))
-    y, _, _, running = final.ys
+    ys, final_result = integrate(root.value, args, nodes)
+    y, _, _, running = ys
     result = RESULTS.promote(root.result)
     result = RESULTS.where(
-        result == RESULTS.successful, RESULTS.promote(final.result), result
+        result == RESULTS.successful, RESULTS.promote(final_result), result
+    )
+    result = RESULTS.where(
+        result == RESULTS.dt_min_reached, RESULTS.step_size_underflow, result
     )
     result = RESULTS.where(jnp.all(jnp.isfinite(y)), result, RESULTS.nonfinite)
     sol = FunctionalSolution(

@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._adjoint import default_adjoint
 from ._contact import build_modes, Events, find_unilaterals, impact
-from ._diffrax_integrate import diffeqsolve
+from ._diffrax_integrate import diffeqsolve, step_floor
 from ._implicit import nan_derivatives_if_failed
 from ._misc import (
     all_finite,
@@ -284,6 +284,12 @@ def simulate(
             exceeds a quarter of the size of the state, stops the run with
             `RESULTS.diverged` (fixed steps included, which diffrax does not check).
             Smaller drift is not an error: it is reported in `violation`.
+        - Step floor: an adaptive `diffrax.PIDController` without its own `dtmin`
+            gets `dtmin = 16 eps max(|t0|, |t1|)` (not forced), and a step below it
+            stops the run with `RESULTS.step_size_underflow` (or
+            `RESULTS.singular_dynamics` where the KKT matrix is singular there). A
+            vector field that is NaN just ahead of the state has every step rejected;
+            without the floor the run went on to `max_steps`.
         - Release: the watched multiplier of a `Unilateral` is also sampled inside each
             step of the attached phase; an adaptive controller refines the steps where
             it changes sign between the ends or is not resolved, so a release inside a
@@ -1652,6 +1658,7 @@ def _simulate(
     t0_run = jnp.where(start_ok, t0, t_start)
     t1_run = jnp.where(start_ok, t1, t_start)
     ts = jnp.where(start_ok, ts, t_start)
+    stepsize_controller, floored = step_floor(stepsize_controller, t0_run, t1_run)
 
     run = driver.run(
         system,
@@ -1788,6 +1795,10 @@ def _simulate(
         RESULTS.nonfinite,
         result,
     )
+    if floored:
+        result = RESULTS.where(
+            result == RESULTS.dt_min_reached, RESULTS.step_size_underflow, result
+        )
     result = RESULTS.where(grid_ok, result, RESULTS.invalid_time_grid)
     result = RESULTS.where(consistent, result, RESULTS.inconsistent_initial_state)
     result = RESULTS.where(start_ok, result, RESULTS.invalid_input)

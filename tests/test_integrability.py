@@ -5,12 +5,16 @@ Closed forms throughout: the lecture's two cylinders (exact), a rheonomic exact 
 `dz - y dx` (not integrable).
 """
 
+import functools as ft
+
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import constrained_jax as cjax
 from constrained_jax._constraints import Holonomic, Pfaffian
 from constrained_jax._integrability import (
     exterior_derivative,
@@ -333,10 +337,84 @@ def test_quadrature_exact_to_degree():
     q = jnp.array([1.3, -0.7])
     exact = q[0] ** 5 * q[1] ** 2
     t = jnp.asarray(0.0)
-    g4 = integrate_pfaffian(pfaffian, jnp.zeros(2), num_points=4).fn(q, t, None)[0]
-    g3 = integrate_pfaffian(pfaffian, jnp.zeros(2), num_points=3).fn(q, t, None)[0]
-    np.testing.assert_allclose(g4, exact, rtol=1e-14)
-    assert abs(g3 - exact) > 1e-6 * abs(exact)
+
+    def value(num_points, rtol=None):
+        hol = integrate_pfaffian(
+            pfaffian, jnp.zeros(2), num_points=num_points, rtol=rtol
+        )
+        return hol.fn(q, t, None)[0]
+
+    # Without the refusal: 4 points are exact, 3 are not.
+    np.testing.assert_allclose(value(4, rtol=np.inf), exact, rtol=1e-14)
+    assert abs(value(3, rtol=np.inf) - exact) > 1e-6 * abs(exact)
+    # With it (the default), the estimate compares with one node fewer: 3 points are
+    # refused, and so are 4 (conservative: the 3-point rule it is compared with is not
+    # exact); 5 points (compared with the exact 4) are returned.
+    assert jnp.isnan(value(3)) and jnp.isnan(value(4))
+    np.testing.assert_allclose(value(5), exact, rtol=1e-14)
+
+
+def _oscillating_form(q, t, args):
+    # d(sin(k x) + y): exact, with G = sin(k x) + y - (sin(k x_ref) + y_ref).
+    return jnp.stack([args["k"] * jnp.cos(args["k"] * q[0]), jnp.ones_like(q[1])])[None]
+
+
+OSCILLATING = Pfaffian(_oscillating_form)
+
+
+def test_unresolved_quadrature_is_refused():
+    """Right or refused: 16 nodes do not resolve sin(20 x) over a segment of length 5.
+    The value used to come back as 19.37 against the true -0.206, without a word."""
+    args = {"k": jnp.asarray(20.0)}
+    q, t = jnp.array([5.0, 0.5]), jnp.asarray(0.0)
+    exact = jnp.sin(20.0 * 5.0) + 0.5
+    coarse = integrate_pfaffian(OSCILLATING, jnp.zeros(2), 0.0, args)
+    assert jnp.isnan(coarse.fn(q, t, args)).all()
+    unchecked = integrate_pfaffian(OSCILLATING, jnp.zeros(2), 0.0, args, rtol=np.inf)
+    assert abs(unchecked.fn(q, t, args)[0] - exact) > 1.0  # what was returned before
+    fine = integrate_pfaffian(OSCILLATING, jnp.zeros(2), 0.0, args, num_points=96)
+    np.testing.assert_allclose(fine.fn(q, t, args), [exact], rtol=1e-12, atol=1e-13)
+    # Near the reference point the same 16 nodes resolve it, and are accurate.
+    near = jnp.array([0.1, 0.5])
+    np.testing.assert_allclose(
+        coarse.fn(near, t, args), [jnp.sin(2.0) + 0.5], rtol=1e-13
+    )
+    # A NaN point is NaN, a zero-length segment is 0 (not refused).
+    assert jnp.isnan(coarse.fn(jnp.array([jnp.nan, 0.0]), t, args)).all()
+    assert coarse.fn(jnp.zeros(2), t, args).tolist() == [0.0]
+    with pytest.raises(ValueError, match="rtol"):
+        integrate_pfaffian(OSCILLATING, jnp.zeros(2), 0.0, args, rtol=-1.0)
+
+
+def test_derivatives_are_the_form_not_the_quadrature():
+    """dG/dq = g and dG/dt = h by the Poincare lemma, exactly and to every order, even
+    where the quadrature itself is coarse; dG/dargs goes through the quadrature."""
+    args = {"k": jnp.asarray(1.7)}
+    q_ref = jnp.array([0.3, -0.2])
+    hol = integrate_pfaffian(OSCILLATING, q_ref, 0.0, args, num_points=2, rtol=np.inf)
+    q, t = jnp.array([1.4, 0.9]), jnp.asarray(0.0)
+    closed = lambda q_, a: (
+        jnp.sin(a["k"] * q_[0]) + q_[1] - (jnp.sin(a["k"] * q_ref[0]) + q_ref[1])
+    )
+    # Two nodes on a segment of length 1.1 at frequency 1.7: the value is off.
+    assert abs(hol.fn(q, t, args)[0] - closed(q, args)) > 1e-4
+    # Its Jacobian and Hessian (the acceleration bias) are those of the closed form.
+    np.testing.assert_allclose(
+        jax.jacfwd(hol.fn)(q, t, args)[0], jax.grad(closed)(q, args), rtol=1e-15
+    )
+    np.testing.assert_allclose(
+        jax.jacrev(hol.fn)(q, t, args)[0], jax.grad(closed)(q, args), rtol=1e-15
+    )
+    np.testing.assert_allclose(
+        jax.hessian(hol.fn)(q, t, args)[0], jax.hessian(closed)(q, args), rtol=1e-15
+    )
+    # The args derivative differentiates the quadrature: with enough nodes, the
+    # closed form's.
+    fine = integrate_pfaffian(OSCILLATING, q_ref, 0.0, args)
+    d_args = jax.grad(lambda a: fine.fn(q, t, a)[0])(args)
+    np.testing.assert_allclose(
+        d_args["k"], jax.grad(lambda a: closed(q, a))(args)["k"], rtol=1e-13
+    )
 
 
 # ---------------------------------------------------------------------------------
@@ -455,3 +533,64 @@ def test_non_finite_point_is_refused():
         for test in (is_exact, is_integrable):
             with pytest.raises(Exception, match="cannot decide"):
                 jax.block_until_ready(test(form, q))
+
+
+def _bead(q, qd, t, args):
+    return 0.5 * qd @ qd - args["g"] * q[1]
+
+
+@pytest.fixture(scope="module")
+def bead_run():
+    """A bead sliding under gravity on the wire sin(k x) + y = 0, the wire given as
+    the exact form d(sin(k x) + y) and integrated from `q_ref`."""
+
+    @ft.partial(jax.jit, static_argnums=4)
+    def run(q_ref, x0, v0, args, integrated):
+        exact = cjax.Holonomic(lambda q, t, a: jnp.sin(a["k"] * q[0]) + q[1])
+        hol = integrate_pfaffian(OSCILLATING, q_ref, 0.0, args)
+        system = cjax.LagrangianSystem(_bead, hol if integrated else exact)
+        q0 = jnp.stack([x0, -jnp.sin(args["k"] * x0)])
+        qd0 = v0 * jnp.stack([jnp.ones_like(x0), -args["k"] * jnp.cos(args["k"] * x0)])
+        return cjax.simulate(
+            system,
+            (0.0, 1.0),
+            q0,
+            qd0,
+            args,
+            stabilization=cjax.Baumgarte(alpha=5.0, beta=5.0),
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            throw=False,
+        )
+
+    return run
+
+
+def test_integrated_wire_in_simulate(bead_run):
+    """The integrated wire moves the bead as the closed-form wire does (its Jacobian
+    and bias are the form's); where 16 nodes cannot resolve the segment from `q_ref`
+    to the start, `simulate` refuses the start instead of following a wrong G, and
+    where the motion leaves the resolved segment it stops."""
+    args = {"k": jnp.asarray(1.3), "g": jnp.asarray(9.81)}
+    x0, v0 = jnp.asarray(0.4), jnp.asarray(1.0)
+    closed = bead_run(jnp.zeros(2), x0, v0, args, False)
+    traj = bead_run(jnp.zeros(2), x0, v0, args, True)
+    assert closed.result == traj.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(traj.q, closed.q, rtol=1e-9, atol=1e-9)
+    far = {"k": jnp.asarray(20.0), "g": jnp.asarray(9.81)}
+    # Slow, so that the bead stays in one well of the wire, 5 <= x <= 5.21.
+    x0, v0 = jnp.asarray(5.0), jnp.asarray(0.05)
+    refused = bead_run(jnp.zeros(2), x0, v0, far, True)
+    assert refused.result == cjax.RESULTS.inconsistent_initial_state
+    # The same start from a reference point next to it is resolved.
+    near_ref = jnp.array([5.1, -jnp.sin(20.0 * 5.1)])
+    traj = bead_run(near_ref, x0, v0, far, True)
+    closed = bead_run(near_ref, x0, v0, far, False)
+    assert jnp.abs(closed.q[:, 0] - 5.1).max() < 0.12
+    assert traj.result == closed.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(traj.q, closed.q, rtol=1e-8, atol=1e-8)
+    # Fast, the bead leaves the segment the quadrature resolves: G turns NaN ahead of
+    # the state, and the run stops when the step falls to round-off, after some
+    # twenty rejected steps (it used to run on to `max_steps`, 16,384 steps).
+    escaped = bead_run(near_ref, x0, jnp.asarray(3.0), far, True)
+    assert escaped.result == cjax.RESULTS.step_size_underflow
+    assert escaped.stats["num_steps"] < 4000
