@@ -1085,6 +1085,8 @@ class _VariationalDriver(_AbstractDriver):
             args,
             ts_save=ts,
             max_steps=max_steps,
+            # `simulate` has tested the start with its own `consistency_tol`.
+            consistency_tol=float("inf"),
             throw=False,
         )
         q, qd = variational.q, variational.qd

@@ -80,11 +80,18 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Holonomic
 from ._implicit import implicit_jvp, nan_derivatives_if_failed
-from ._misc import all_finite, check_max_steps, default_float_dtype, full_precision
+from ._misc import (
+    all_finite,
+    check_max_steps,
+    CONSISTENCY_TOLERANCE,
+    default_float_dtype,
+    float_tolerance,
+    full_precision,
+)
 from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.newton import AbstractKKTSolver, iterate
-from ._system import LagrangianSystem
+from ._system import LagrangianSystem, off_constraints
 
 
 _UNROLL_MAX = 12
@@ -444,6 +451,7 @@ def integrate_variational(
     *,
     ts_save,
     max_steps: int = 16384,
+    consistency_tol: float | None = None,
     throw: bool = True,
 ) -> VariationalTrajectory:
     """Integrate with a variational integrator and save at `ts_save`.
@@ -456,11 +464,17 @@ def integrate_variational(
     - `t0`, `t1`: the time span (scalars, may be traced), `t0 <= t1`.
     - `dt0`: the step size `h` (a Python float or a traced scalar); required.
     - `q0`, `qd0`: the initial state, shape `(n,)`, consistent with the constraints
-        (this function does not check it; `simulate` does).
+        (`G(q0, t0) = 0` and `A qd0 + a = 0` within `consistency_tol`, as in
+        [`constrained_jax.simulate`][]; else `RESULTS.inconsistent_initial_state`
+        and no step is taken: the first step would silently move the state onto the
+        constraints and drop the velocity they forbid).
     - `args`: parameters passed to every user function.
     - `ts_save`: nondecreasing save times in `[t0, t1]`, shape `(T,)` with `T >= 1`
         static (values may be traced).
     - `max_steps`: a static bound on the total number of steps.
+    - `consistency_tol`: the tolerance of the start's test, relative to
+        `1 + max|q0|` and `1 + max|qd0|`; `None` (default) follows the dtype as in
+        `simulate` (`1e-8` in float64).
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:** a [`constrained_jax.VariationalTrajectory`][]: positions and
@@ -482,7 +496,8 @@ def integrate_variational(
     needed; `RESULTS.variational_step_failed` when a Newton solve does not converge
     (the step is too large, or the constraints are dependent);
     `RESULTS.invalid_time_grid` when `dt0 <= 0` or the save times are not nondecreasing
-    in `[t0, t1]`; `RESULTS.invalid_input` for non-finite inputs. States at save
+    in `[t0, t1]`; `RESULTS.inconsistent_initial_state` for a start off the
+    constraints; `RESULTS.invalid_input` for non-finite inputs. States at save
     times not reached are `inf`.
 
     Composes with `jax.jit` and `jax.vmap`; reverse-mode differentiable (`jax.grad`)
@@ -521,7 +536,12 @@ def integrate_variational(
     dt0 = jnp.asarray(dt0, dtype)
     if t0.shape != () or t1.shape != () or dt0.shape != ():
         raise ValueError("`t0`, `t1` and `dt0` must be scalars.")
-    sol = _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps)
+    if consistency_tol is None:
+        consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
+    consistent = jnp.invert(off_constraints(system, q0, qd0, t0, args, consistency_tol))
+    sol = _integrate(
+        integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps, consistent
+    )
     # NaN derivatives for a failed run (see `nan_derivatives_if_failed`).
     sol = nan_derivatives_if_failed(
         sol, (system, q0, qd0, args, t0, t1), sol.result != RESULTS.successful
@@ -541,7 +561,9 @@ class _Carry(eqx.Module):
     qd_out: Float[Array, "T n"]
 
 
-def _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps):
+def _integrate(
+    integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps, consistent
+):
     num_saves = ts_save.shape[0]
     valid_grid = (
         (dt0 > 0)
@@ -551,7 +573,7 @@ def _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_step
         & (t1 >= t0)
     )
     finite = all_finite((q0, qd0, args, t0, t1, dt0, ts_save))
-    ok_input = valid_grid & finite
+    ok_input = valid_grid & finite & consistent
 
     # The grid: interval i runs from starts[i] to ts_save[i] in counts[i] steps of
     # size steps[i]; it ends after ends[i] steps in all. Bad inputs take no steps.
@@ -628,6 +650,7 @@ def _integrate(integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_step
     )
     result = RESULTS.where(total_steps > max_steps, RESULTS.max_steps_reached, result)
     result = RESULTS.where(valid_grid, result, RESULTS.invalid_time_grid)
+    result = RESULTS.where(consistent, result, RESULTS.inconsistent_initial_state)
     result = RESULTS.where(finite, result, RESULTS.invalid_input)
     stats = {
         "num_steps": final.num_steps,

@@ -610,3 +610,33 @@ def test_failed_run_has_nan_gradient(runners):
     grad = jax.jit(jax.grad(lambda th, dt: run(th, 0.0, args, dt, TS).q[-1, 0]))
     assert np.isnan(grad(0.5, 1e-4))
     assert np.isfinite(grad(0.5, 0.01))
+
+
+def test_start_off_the_constraints_is_refused():
+    """The first step puts the state on the constraints: a start off them (the rod
+    10 % too long, a radial velocity) used to be integrated from the wrong state,
+    with `successful`. It is refused now, as `simulate` refuses it, and takes no
+    step."""
+    args = pendulum.default_args()
+    q0, qd0 = pendulum.state(jnp.asarray(0.5), jnp.asarray(0.0), args)
+
+    @jax.jit
+    def run(q0_, qd0_):
+        return cjax.integrate_variational(
+            cjax.VariationalIntegrator(),
+            pendulum.system(),
+            0.0,
+            0.5,
+            0.05,
+            q0_,
+            qd0_,
+            args,
+            ts_save=TS,
+            throw=False,
+        )
+
+    assert run(q0, qd0).result == cjax.RESULTS.successful
+    for start in [(1.1 * q0, qd0), (q0, qd0 + 0.5 * q0)]:
+        sol = run(*start)
+        assert sol.result == cjax.RESULTS.inconsistent_initial_state
+        assert int(sol.stats["num_steps"]) == 0
