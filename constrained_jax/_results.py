@@ -14,8 +14,9 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     invalid_input = (
         "The initial guess or the parameters `args` contain NaN or inf. Check the "
         "inputs: every leaf of the start (`x0` and `multipliers0` of `extremize`, "
-        "`y0` and the boundary values of `solve_functional`, `q0` and `qd0` of "
-        "`simulate`, `params0` of `fit`) and of `args` must be finite."
+        "`y0` and the boundary values of `solve_functional`, `q0`, `qd0`, `t_span` "
+        "and a traced `dt0` of `simulate`, `params0` of `fit`) and of `args` must be "
+        "finite."
     )
     singular_kkt = (
         "The KKT matrix [[H, J^T], [J, 0]] is singular (H is the Hessian of "

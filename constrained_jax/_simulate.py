@@ -1628,7 +1628,7 @@ def _simulate(
     max_events,
 ):
     system.check(q0, qd0, t0, args)
-    start_ok = all_finite((q0, qd0, args, t0, t1))
+    start_ok = all_finite((q0, qd0, args, t0, t1, dt0))
     modes = mode0 = None
     if max_events is None:
         consistent = jnp.invert(
@@ -1651,7 +1651,7 @@ def _simulate(
     # (diffrax raises on such save times whatever `throw` says: run on a valid grid,
     # and report `invalid_time_grid`.)
     ts = jnp.where(grid_ok, ts, t0)
-    # A start with NaN or inf (in `q0`, `qd0`, `args` or the span) is refused
+    # A start with NaN or inf (in `q0`, `qd0`, `args`, the span or `dt0`) is refused
     # (`invalid_input`) and runs the empty span at a finite `t0`: integrated, its
     # steps would all be rejected until `max_steps`, and under `jax.vmap` (a sweep)
     # every other lane of the batch would wait for it (160x the time of a batch of

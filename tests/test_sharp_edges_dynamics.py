@@ -256,25 +256,35 @@ def test_invalid_inputs(pend):
 
 @jax.jit
 @jax.vmap
-def _pendulums(g, t1):
-    """A batch of pendulums (a sweep over `g` and the end time)."""
+def _pendulums(g, t1, dt0):
+    """A batch of pendulums (a sweep over `g`, the end time and the first step)."""
     args = dict(pendulum.default_args(), g=g)
     q0, qd0 = pendulum.state(1.0, 0.0, args)
-    return cjax.simulate(pendulum.system(), (0.0, t1), q0, qd0, args, throw=False)
+    return cjax.simulate(
+        pendulum.system(), (0.0, t1), q0, qd0, args, dt0=dt0, throw=False
+    )
 
 
 def test_invalid_lane_of_a_batch_runs_no_step():
-    """A lane with NaN in `args` or an infinite end time is `invalid_input` and
-    takes no step: it does not hold up the batch (under `jax.vmap` the loop runs
-    until the slowest lane is done; it used to reject steps until `max_steps`,
-    16,384, for every lane's 100). The other lanes are as without it."""
-    g = jnp.array([9.81, jnp.nan, 9.0, 9.81])
-    t1 = jnp.array([2.0, 2.0, 2.0, jnp.inf])
-    bad = _pendulums(g, t1)
-    good = _pendulums(jnp.array([9.81, 9.5, 9.0, 9.81]), jnp.full((4,), 2.0))
+    """A lane with NaN in `args`, an infinite end time or a NaN first step (traced:
+    a concrete one raises) is `invalid_input` and takes no step: it does not hold up
+    the batch (under `jax.vmap` the loop runs until the slowest lane is done; it used
+    to reject steps until `max_steps`, 16,384, for every lane's 100). The other lanes
+    are as without it."""
+    g = jnp.array([9.81, jnp.nan, 9.0, 9.81, 9.5])
+    t1 = jnp.array([2.0, 2.0, 2.0, jnp.inf, 2.0])
+    dt0 = jnp.array([0.01, 0.01, 0.01, 0.01, jnp.nan])
+    bad = _pendulums(g, t1, dt0)
+    good = _pendulums(
+        jnp.array([9.81, 9.5, 9.0, 9.81, 9.5]),
+        jnp.full((5,), 2.0),
+        jnp.full((5,), 0.01),
+    )
     invalid, ok = cjax.RESULTS.invalid_input._value, cjax.RESULTS.successful._value
-    np.testing.assert_array_equal(bad.result._value, [ok, invalid, ok, invalid])
-    np.testing.assert_array_equal(bad.stats["num_steps"][1::2], 0)
+    np.testing.assert_array_equal(
+        bad.result._value, [ok, invalid, ok, invalid, invalid]
+    )
+    np.testing.assert_array_equal(bad.stats["num_steps"][np.array([1, 3, 4])], 0)
     for i in (0, 2):
         assert int(bad.stats["num_steps"][i]) == int(good.stats["num_steps"][i]) > 0
         np.testing.assert_allclose(bad.q[i], good.q[i], rtol=1e-14, atol=1e-14)
