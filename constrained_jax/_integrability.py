@@ -393,6 +393,8 @@ def _quadrature(q, t, q_ref, t_ref, rest):
     values = jax.vmap(integrand)(jnp.concatenate([nodes, check_nodes]))
     values, check_values = values[: nodes.shape[0]], values[nodes.shape[0] :]
     integral = weights @ values
+    if check_nodes.shape[0] == 0:  # `rtol=inf`: no check (NaN still propagates)
+        return integral
     estimate = jnp.abs(integral - check_weights @ check_values)
     scale = weights @ jnp.abs(values)
     # `<=` is false for NaN, so a non-finite integrand is refused too; a zero-length
@@ -466,13 +468,14 @@ class _SegmentIntegral(eqx.Module):
         dtype = q.dtype
         rtol = _default_rtol(self.rtol, dtype)
         cast = lambda x: x.astype(dtype)
+        checked = rtol != float("inf")
         rest = (
             self.constraint,
             args,
             cast(self.nodes),
             cast(self.weights),
-            cast(self.check_nodes),
-            cast(self.check_weights),
+            cast(self.check_nodes) if checked else jnp.zeros((0,), dtype),
+            cast(self.check_weights) if checked else jnp.zeros((0,), dtype),
             jnp.asarray(rtol, dtype),
         )
         return _potential(q, t.astype(dtype), cast(self.q_ref), cast(self.t_ref), rest)
@@ -535,8 +538,9 @@ def integrate_pfaffian(
         time.
     - `num_points`: the number of Gauss-Legendre nodes (static).
     - `rtol`: the refusal threshold above (static); defaults to `sqrt(eps)` of the
-        dtype of `q`. `rtol=float("inf")` turns the refusal off (NaN integrands
-        still give NaN).
+        dtype of `q`. `rtol=float("inf")` turns the refusal off, and with it the
+        second rule (`num_points` evaluations per value; NaN integrands still give
+        NaN): for a form known to be resolved, at your own risk.
 
     **Returns:**
 
