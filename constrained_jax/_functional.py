@@ -813,7 +813,10 @@ def solve_functional(
         twice the interval, the solve continues in the constraint values from those
         of the straight line to `C_j` (a sequence of Newton solves inside the same
         compiled program; `stats["num_steps"]` counts all their steps). A user `y0`
-        overrides all this.
+        overrides all this. A [`constrained_jax.FunctionalSolution`][] as `y0` is
+        mapped affinely onto this interval, plus the straight line from its end
+        values to this functional's (a continuation in the ends: its shape, not its
+        values at the same `x`, which beyond its ends would be extrapolated).
     - `max_steps`: the most Newton steps.
     - `rtol`, `atol`: the tolerance on the discretization error. The solution is
         `successful` only if the discretization's a-posteriori error estimate
@@ -856,8 +859,25 @@ def solve_functional(
         # argument of it, so every new function (a fresh closure per call) would
         # compile the whole solve again. Values at the nodes are traced.
         nodes = discretization.nodes(functional.interval)
-        # (A solution of another interval, as a start, extrapolates.)
-        start = y0._extrapolated if isinstance(y0, FunctionalSolution) else y0
+        start = y0
+        if isinstance(y0, FunctionalSolution):
+            # A solution, as a start, is mapped affinely onto this interval, plus
+            # the straight line from its end values to this functional's: on
+            # another interval or between other ends (a continuation) its values
+            # at the same x would be extrapolated beyond its ends, where a
+            # polynomial grows fast (from the rope on (0, 1) to (0, 1.05) the line
+            # search failed; mapped, 4 Newton steps). On the same interval, with
+            # the same ends, this is the solution itself, to round-off.
+            (xl, xr), (sl, sr) = functional.interval, y0.interval
+            (yl, yr), sol = functional.boundary, y0
+            shift_l = yl - sol._extrapolated(sl)
+            shift_r = yr - sol._extrapolated(sr)
+
+            def start(x):
+                u = (x - xl) / (xr - xl)
+                old = sol._extrapolated(sl + u * (sr - sl))
+                return old + (1 - u) * shift_l + u * shift_r
+
         y0 = jax.vmap(lambda x: jnp.asarray(start(x)))(nodes)
     dtype = (
         functional.boundary[0].dtype

@@ -353,3 +353,21 @@ def test_far_user_start_is_right_or_refused(scale):
         _check_closed_form(sol, (0, 0, 1, 0), 1.5, 1e-10, 1e-10)
     else:
         assert sol.result != cjax.RESULTS.successful
+
+
+def test_continuation_from_a_solution_on_another_interval():
+    """A solution as `y0` is mapped affinely onto the new interval. Its values at the
+    same x used to be taken, extrapolated beyond its ends: from the rope on (0, 1)
+    to (0, 1.05) the polynomial's growth there made the line search fail."""
+    first = _CHEB(_ends(0, 0, 1, 0), jnp.asarray(1.55))
+    assert first.result == cjax.RESULTS.successful
+    for ends in [(0.0, 0.0, 1.05, 0.0), (-0.2, 0.1, 1.0, 0.0)]:
+        sol = cjax.solve_functional(
+            cat.functional(*ends),
+            {"rho_g": 1.0, "length": 1.55},
+            discretization=cjax.Chebyshev(32),
+            y0=first,
+            throw=False,
+        )
+        _check_closed_form(sol, ends, 1.55, 1e-10, 1e-10)
+        assert int(sol.stats["num_steps"]) <= 8
