@@ -166,7 +166,8 @@ _STEP_FLOOR = 16
 def step_floor(stepsize_controller, t0, t1):
     """A `PIDController` without `dtmin` gets one at `_STEP_FLOOR eps max(|t0|, |t1|)`,
     not forced: a step that shrinks below it fails (diffrax's `dt_min_reached`, which
-    `simulate` and `solve_shooting` report as `RESULTS.step_size_underflow`). A vector
+    `simulate` reports as `RESULTS.step_size_underflow`; in `solve_shooting` the trial
+    gives a NaN residual). A vector
     field that is NaN just ahead of the state (singular dynamics, a solution that
     blows up) has every step rejected and the step shrinking by `factormin` each time:
     without a floor the solve went on to `max_steps` (which a `jax.vmap` batch waits

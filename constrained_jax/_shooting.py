@@ -189,13 +189,10 @@ def _solve_shooting(
     # A floor on the step: a trial slope whose solution blows up (or turns NaN)
     # before `xR` stops after about 20 rejected steps instead of running each Newton
     # step's integration to its 100,000 steps.
-    controller, _ = step_floor(
-        diffrax.PIDController(rtol=rtol, atol=atol),
-        jnp.asarray(xl, dtype),
-        jnp.asarray(xr, dtype),
-    )
-
     x_left, x_right = jnp.asarray(xl, dtype), jnp.asarray(xr, dtype)
+    controller, _ = step_floor(
+        diffrax.PIDController(rtol=rtol, atol=atol), x_left, x_right
+    )
 
     def integrate(unknowns, a, ts=None):
         """The states at `xR` (`ts=None`) or at `ts`, and diffrax's result. A trial
@@ -261,9 +258,6 @@ def _solve_shooting(
     result = RESULTS.promote(root.result)
     result = RESULTS.where(
         result == RESULTS.successful, RESULTS.promote(final_result), result
-    )
-    result = RESULTS.where(
-        result == RESULTS.dt_min_reached, RESULTS.step_size_underflow, result
     )
     result = RESULTS.where(jnp.all(jnp.isfinite(y)), result, RESULTS.nonfinite)
     sol = FunctionalSolution(
