@@ -85,6 +85,24 @@ def test_detachment_angle_and_time(roll_offs):
         np.testing.assert_array_equal(traj.multipliers[i, 3], 0.0)
 
 
+def test_start_below_the_equator_leaves_at_once():
+    """Below the equator the normal force at rest, M g cos theta0, is negative: the
+    cylinder leaves at t = 0, where it stands. The closed forms say so (the lecture's
+    formula alone gave theta* = 1.81 < theta0 = 2, an angle never reached)."""
+    theta0 = jnp.asarray(2.0)
+    args = cyl.default_args(alpha=0.5)
+    assert cyl.normal_force(theta0, theta0, args) < 0
+    assert cyl.detachment_angle(theta0, args) == theta0
+    np.testing.assert_allclose(cyl.detachment_time(theta0, args), 0.0, atol=1e-12)
+    # Continuous at the equator, where the formula gives theta0 too.
+    at = jnp.asarray(np.pi / 2)
+    np.testing.assert_allclose(cyl.detachment_angle(at, args), at, rtol=1e-15)
+    traj = _roll_off(jnp.asarray(0.5), theta0)
+    assert traj.result == cjax.RESULTS.successful
+    assert bool(traj.release.released) and float(traj.release.time) == 0.0
+    np.testing.assert_allclose(traj.release.q[1], theta0, rtol=1e-12)
+
+
 def test_vmap_matches_a_single_run(roll_offs):
     alpha, theta0, batched = roll_offs
     single = _roll_off(alpha[4], theta0[4])

@@ -132,8 +132,15 @@ def no_slip_multiplier(theta1, args):
 
 
 def detachment_angle(theta0, args):
-    """`theta* = arccos(2 cos theta0 / (3 + alpha))`."""
-    return jnp.arccos(2 * jnp.cos(theta0) / (3 + alpha(args)))
+    """`theta* = arccos(2 cos theta0 / (3 + alpha))` for a start at rest above the
+    equator (`cos theta0 >= 0`); below it the normal force at rest, `M g cos theta0`,
+    is already negative and the cylinder leaves at once: `theta* = theta0` (the two
+    agree at the equator). (The formula alone gave an angle the cylinder never
+    reaches, `theta* < theta0`.)"""
+    cos0 = jnp.cos(theta0)
+    above = cos0 >= 0
+    formula = jnp.arccos(2 * jnp.where(above, cos0, 0.0) / (3 + alpha(args)))
+    return jnp.where(above, formula, theta0)
 
 
 def _carlson_rf(x, y, z, iterations: int = 40):
@@ -175,5 +182,6 @@ def time_to_angle(theta1, theta0, args):
 
 
 def detachment_time(theta0, args):
-    """The time from rest at `theta0` to detachment, `time_to_angle(theta*, theta0)`."""
+    """The time from rest at `theta0` to detachment, `time_to_angle(theta*, theta0)`
+    (0 below the equator, where it leaves at once)."""
     return time_to_angle(detachment_angle(theta0, args), theta0, args)
