@@ -1085,7 +1085,8 @@ class _VariationalDriver(_AbstractDriver):
             args,
             ts_save=ts,
             max_steps=max_steps,
-            # `simulate` has tested the start with its own `consistency_tol`.
+            # `simulate` has tested the start with its own `consistency_tol`: the
+            # variational integrator does not test it again.
             consistency_tol=float("inf"),
             throw=False,
         )

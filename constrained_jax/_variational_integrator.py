@@ -474,7 +474,7 @@ def integrate_variational(
     - `max_steps`: a static bound on the total number of steps.
     - `consistency_tol`: the tolerance of the start's test, relative to
         `1 + max|q0|` and `1 + max|qd0|`; `None` (default) follows the dtype as in
-        `simulate` (`1e-8` in float64).
+        `simulate` (`1e-8` in float64); `float("inf")` skips the test.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:** a [`constrained_jax.VariationalTrajectory`][]: positions and
@@ -538,7 +538,12 @@ def integrate_variational(
         raise ValueError("`t0`, `t1` and `dt0` must be scalars.")
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
-    consistent = jnp.invert(off_constraints(system, q0, qd0, t0, args, consistency_tol))
+    if isinstance(consistency_tol, (int, float)) and consistency_tol == float("inf"):
+        consistent = jnp.asarray(True)  # not tested (`simulate` tests it itself)
+    else:
+        consistent = jnp.invert(
+            off_constraints(system, q0, qd0, t0, args, consistency_tol)
+        )
     sol = _integrate(
         integrator, system, t0, t1, dt0, q0, qd0, args, ts_save, max_steps, consistent
     )
