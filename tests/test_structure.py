@@ -154,6 +154,50 @@ def test_missed_entry_is_refused_never_wrong():
     )
 
 
+class _PlainSolve(cjax.AbstractSaddlePointSolver):
+    """A user's structured solver with no special care for NaN: `jnp.linalg.solve`
+    of the full KKT matrix, never `singular`."""
+
+    def structured(self):
+        return True
+
+    def solve(self, mass, jac, rhs, bias):
+        mass, jac = (m.todense() if hasattr(m, "todense") else m for m in (mass, jac))
+        n, k = rhs.shape[0], bias.shape[0]
+        kkt = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k), mass.dtype)]])
+        sol = jnp.linalg.solve(kkt, jnp.concatenate([rhs, -bias]))
+        return sol[:n], sol[n:], jnp.array(False)
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [cjax.RangeSpaceLDL(), cjax.SparseSchur(), _PlainSolve()],
+    ids=["RangeSpaceLDL", "SparseSchur", "users-own"],
+)
+def test_missed_entry_is_refused_by_every_structured_solver(solver):
+    """The refusal of a missed entry with each solver that takes the detected
+    patterns: the library's report the NaN right-hand side it gets as `singular`
+    with zeros; a solver of the user's (NaN out, never `singular`) has its solution
+    masked by the system."""
+    base = _switched_system()
+    system = cjax.LagrangianSystem(
+        base.lagrangian, base.constraints, saddle_point_solver=solver
+    )
+    q, qd = jnp.array([0.6, -0.8]), jnp.array([0.8, 0.6])
+    t = jnp.asarray(0.0)
+    solve = jax.jit(system.solve_accelerations)
+    qdd, lam, singular = solve(q, qd, t, {"c": jnp.asarray(10.0)})
+    assert singular
+    np.testing.assert_array_equal(qdd, 0.0)
+    np.testing.assert_array_equal(lam, 0.0)
+    # The same program with the coupling off: right.
+    qdd, lam, singular = solve(q, qd, t, {"c": jnp.asarray(1.0)})
+    assert not singular
+    ref, ref_lam, _ = _dense(base).solve_accelerations(q, qd, t, {"c": 1.0})
+    np.testing.assert_allclose(qdd, ref, atol=1e-12)
+    np.testing.assert_allclose(lam, ref_lam, atol=1e-12)
+
+
 def test_time_switch_seen_by_detection_is_right():
     """A coupling that switches on at `t > 0.5`: random times hit it, so the
     pattern has it and the solve is right before and after the switch."""

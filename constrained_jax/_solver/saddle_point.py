@@ -39,6 +39,11 @@ class AbstractSaddlePointSolver(eqx.Module):
     (`f . v != 0`, e.g. a potential gradient on a massless coordinate) the equations
     are inconsistent and the solve reports `singular`. Redundant constraints (`A`
     rank-deficient) are always reported `singular`: their multipliers are not unique.
+
+    **Non-finite values.** The library's solvers also report a solution that is not
+    finite (NaN or inf in the inputs, or an overflow) as `singular`, with zeros;
+    `LagrangianSystem` relies on it to refuse a solve (a NaN right-hand side). A
+    solver of your own need not: the system then masks its solution itself.
     """
 
     @abc.abstractmethod
@@ -389,6 +394,7 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
         u = [jnp.zeros_like(rhs[0]) if v is None else v for v in u]
         if k == 0:
             x = jnp.stack(u)
+            singular = singular | jnp.invert(jnp.all(jnp.isfinite(x)))
             return jnp.where(singular, 0.0, x), jnp.zeros((0,), x.dtype), singular
         y = []  # M~^-1 A^T
         # The rows of A along a null direction v of M~ (the A-row check). For
@@ -416,8 +422,12 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
         lam = [jnp.zeros_like(rhs[0]) if v is None else v for v in lam]
         x = [_add(u[i], _dot([y[r][i] for r in range(k)], lam)) for i in range(n)]
         singular = singular | singular_s
+        sol = jnp.stack(x + lam)
+        # A non-finite input (NaN, inf) or an overflow: `singular`, as the other
+        # solvers report it.
+        singular = singular | jnp.invert(jnp.all(jnp.isfinite(sol)))
         # One `where` on both parts (XLA then evaluates the flag in fewer fusions).
-        sol = jnp.where(singular, 0.0, jnp.stack(x + lam))
+        sol = jnp.where(singular, 0.0, sol)
         return sol[:n], sol[n:], singular
 
 
