@@ -15,6 +15,7 @@ Cases (float64, after compilation):
   pendulum over 20 s.
 - `sim release 1`, `sim release vmap 64`: the two cylinders with the contact
   unilateral over 3 s (release, then free flight), one run and a vmap over 64 angles.
+- `sim cylinders attached 1`: the two cylinders attached (no release) over 0.8 s.
 - `extremize 10k`: `jit(vmap(extremize))` of 10,000 cylinder-volume problems.
 - `functional Chebyshev(32)`, `functional PiecewiseLinear(1001)`: the catenary from
   the scene's parabola start.
@@ -100,6 +101,17 @@ def cases(cj) -> dict:
         return traj.q[-1]
 
     out["sim release 1"] = (jax.jit(release_run), (jnp.asarray(0.3),))
+    attached = cyl.system()
+
+    def attached_run(theta0):
+        q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), c_args)
+        traj = cj.simulate(
+            attached, (0.0, 0.8), q0, qd0, c_args, solver=diffrax.Tsit5(),
+            stepsize_controller=controller, saveat=cj.SaveAt(t1=True),
+        )  # fmt: skip
+        return traj.q[-1]
+
+    out["sim cylinders attached 1"] = (jax.jit(attached_run), (jnp.asarray(0.3),))
     out["sim release vmap 64"] = (
         jax.jit(jax.vmap(release_run)),
         (jnp.linspace(0.2, 0.5, 64),),

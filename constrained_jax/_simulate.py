@@ -168,7 +168,7 @@ def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
 
 @eqx.filter_jit
 def _jit_solve_accelerations(system, q, qd, t, args, bias_correction):
-    return system.solve_accelerations(q, qd, t, args, bias_correction)
+    return system._solve_accelerations_in_loop(q, qd, t, args, bias_correction)
 
 
 def _field_and_multipliers(system, stabilization):

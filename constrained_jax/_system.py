@@ -439,25 +439,44 @@ class LagrangianSystem(eqx.Module):
         qdd, lam, singular, mismatch = self._solve(q, qd, t, args, bias_correction)
         return qdd, lam, singular | mismatch
 
-    def _solve(self, q, qd, t, args, bias_correction=None):
+    @full_precision
+    def _solve_accelerations_in_loop(self, q, qd, t, args, bias_correction=None):
+        """`solve_accelerations` as `simulate`'s vector field calls it: the same
+        answers, with a missed pattern refused by masking the solution (see
+        `_solve`)."""
+        qdd, lam, singular, mismatch = self._solve(
+            q, qd, t, args, bias_correction, refuse_by_nan=False
+        )
+        return qdd, lam, singular | mismatch
+
+    def _solve(self, q, qd, t, args, bias_correction=None, refuse_by_nan=True):
         """`(qddot, lambda, singular, mismatch)`: `mismatch` is the run-time check of
-        the sparsity patterns (see `_equations`); both flags zero the solution."""
+        the sparsity patterns (see `_equations`); both flags zero the solution.
+
+        A pattern that missed an entry refuses the solve, in one of two ways that
+        give the same answers and differ only in what XLA makes of them. With
+        `refuse_by_nan` the right-hand side is NaN: the library's solvers report a
+        non-finite solution as `singular`, with zeros. Under `jax.vmap` over many
+        states that is faster than masking the solution, into which XLA fused the
+        pattern check again for each output (two cylinders, 1e4 states: 0.72x the
+        time, `ab.py`). Inside `simulate`'s integration loop masking is the faster
+        (a single trajectory 3-6 % faster, a batch of 64 the same), so the vector
+        field uses it."""
         t = jnp.asarray(t, q.dtype)
         mass, rhs, jac, bias, mismatch = self._equations(q, qd, t, args)
         if bias_correction is not None:
             bias = bias + bias_correction
         solver = self.saddle_point_solver
-        # A pattern that missed an entry refuses the solve. The library's solvers
-        # report a non-finite solution as `singular`, with zeros: a NaN right-hand
-        # side does it, which under `jax.vmap` costs less than masking the solution
-        # (two cylinders, 1e4 states: 1.03 -> 0.58 ms; XLA fused the pattern check
-        # into the masking of each output, recomputing it there).
-        rhs = jnp.where(mismatch, jnp.nan, rhs)
+        ours = isinstance(solver, (Automatic, FullKKTLU, RangeSpaceLDL, SparseSchur))
+        by_nan = refuse_by_nan and ours  # (a solver of the user's: no promise on NaN)
+        if by_nan:
+            rhs = jnp.where(mismatch, jnp.nan, rhs)
         # Differentiated by the implicit rule, not through the elimination.
         qdd, lam, singular = kkt_derivative.solve(solver, mass, jac, rhs, bias)
-        if not isinstance(solver, (Automatic, FullKKTLU, RangeSpaceLDL, SparseSchur)):
-            # A solver of the user's: no promise about NaN.
-            qdd, lam = (jnp.where(mismatch, 0.0, v) for v in (qdd, lam))
+        if not by_nan:
+            n = qdd.shape[0]
+            sol = jnp.where(mismatch, 0.0, jnp.concatenate([qdd, lam]))
+            qdd, lam = sol[:n], sol[n:]
         return qdd, lam, singular, mismatch
 
     @full_precision
