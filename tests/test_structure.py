@@ -198,6 +198,25 @@ def test_missed_entry_is_refused_by_every_structured_solver(solver):
     np.testing.assert_allclose(lam, ref_lam, atol=1e-12)
 
 
+def test_missed_entry_in_simulate_is_refused():
+    """`simulate` (whose vector field refuses a missed entry by masking, not by a
+    NaN right-hand side) stops with a failure instead of integrating the wrong
+    equations; with the coupling off the same program runs."""
+    system = _switched_system()
+    q, qd = jnp.array([0.6, -0.8]), jnp.array([0.8, 0.6])
+
+    @jax.jit
+    def run(c):
+        traj = cjax.simulate(system, (0.0, 0.5), q, qd, {"c": c}, throw=False)
+        return traj.result, traj.q[-1]
+
+    result, _ = run(jnp.asarray(10.0))
+    assert result == cjax.RESULTS.singular_dynamics
+    result, q1 = run(jnp.asarray(1.0))
+    assert result == cjax.RESULTS.successful
+    np.testing.assert_allclose(jnp.dot(q1, q1), 1.0, atol=1e-6)
+
+
 def test_time_switch_seen_by_detection_is_right():
     """A coupling that switches on at `t > 0.5`: random times hit it, so the
     pattern has it and the solve is right before and after the switch."""
