@@ -29,12 +29,7 @@ from jaxtyping import Array, Bool, Float
 from ._constraints import AbstractConstraint
 from ._misc import full_precision, inexact_asarray
 from ._solver import kkt_derivative
-from ._solver.saddle_point import (
-    AbstractSaddlePointSolver,
-    Automatic,
-    FullKKTLU,
-    RangeSpaceLDL,
-)
+from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
 from ._solver.sparse import SparseMatrix
 from ._solver.sparse_schur import SparseSchur
 from ._structure import colouring, dense_structure, detect, probe_vector, Structure
@@ -455,8 +450,9 @@ class LagrangianSystem(eqx.Module):
 
         A pattern that missed an entry refuses the solve, in one of two ways that
         give the same answers and differ only in what XLA makes of them. With
-        `refuse_by_nan` the right-hand side is NaN: the library's solvers report a
-        non-finite solution as `singular`, with zeros. Under `jax.vmap` over many
+        `refuse_by_nan` the right-hand side is NaN, for a solver that reports a
+        non-finite solution as `singular` with zeros (`reports_non_finite()`, the
+        library's solvers). Under `jax.vmap` over many
         states that is faster than masking the solution, into which XLA fused the
         pattern check again for each output (two cylinders, 1e4 states: 0.72x the
         time, `ab.py`). Inside `simulate`'s integration loop masking is the faster
@@ -467,8 +463,7 @@ class LagrangianSystem(eqx.Module):
         if bias_correction is not None:
             bias = bias + bias_correction
         solver = self.saddle_point_solver
-        ours = isinstance(solver, (Automatic, FullKKTLU, RangeSpaceLDL, SparseSchur))
-        by_nan = refuse_by_nan and ours  # (a solver of the user's: no promise on NaN)
+        by_nan = refuse_by_nan and solver.reports_non_finite()
         if by_nan:
             rhs = jnp.where(mismatch, jnp.nan, rhs)
         # Differentiated by the implicit rule, not through the elimination.

@@ -41,9 +41,10 @@ class AbstractSaddlePointSolver(eqx.Module):
     rank-deficient) are always reported `singular`: their multipliers are not unique.
 
     **Non-finite values.** The library's solvers also report a solution that is not
-    finite (NaN or inf in the inputs, or an overflow) as `singular`, with zeros;
-    `LagrangianSystem` relies on it to refuse a solve (a NaN right-hand side). A
-    solver of your own need not: the system then masks its solution itself.
+    finite (NaN or inf in the inputs, or an overflow) as `singular`, with zeros, and
+    say so by `reports_non_finite()`; `LagrangianSystem` then refuses a solve by a NaN
+    right-hand side. A solver of your own need not (the default is `False`): the
+    system then masks its solution itself.
     """
 
     @abc.abstractmethod
@@ -64,6 +65,12 @@ class AbstractSaddlePointSolver(eqx.Module):
         """Whether `solve` takes `M` and `A` as `SparseMatrix`es with patterns
         detected at trace time (`LagrangianSystem` then builds them so, checking the
         patterns at run time); if `False` it gets dense arrays and no pattern."""
+        return False
+
+    def reports_non_finite(self) -> bool:
+        """Whether `solve` reports a solution that is not finite as `singular`, with
+        zeros (a NaN right-hand side then refuses a solve). `False` by default:
+        `LagrangianSystem` then masks the solution itself."""
         return False
 
 
@@ -106,6 +113,9 @@ class FullKKTLU(AbstractSaddlePointSolver):
     """
 
     unroll_max: int = 12
+
+    def reports_non_finite(self) -> bool:
+        return True
 
     def solve(self, mass, jac, rhs, bias):
         mass, jac = as_dense(mass), as_dense(jac)
@@ -363,6 +373,9 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
     def structured(self) -> bool:
         return self.sparse
 
+    def reports_non_finite(self) -> bool:
+        return True
+
     def solve(self, mass, jac, rhs, bias):
         n, k = rhs.shape[0], bias.shape[0]
         if n + k > self.unroll_max:
@@ -491,6 +504,10 @@ class Automatic(AbstractSaddlePointSolver):
     unroll_max: int = 6
 
     def structured(self) -> bool:
+        return True
+
+    def reports_non_finite(self) -> bool:
+        # Every solver `choose` returns does.
         return True
 
     def choose(self, mass, n: int, k: int) -> AbstractSaddlePointSolver:

@@ -554,6 +554,9 @@ class SparseSchur(AbstractSaddlePointSolver):
 
     method: str = eqx.field(default="auto", static=True)
 
+    def reports_non_finite(self) -> bool:
+        return True
+
     def solve(self, mass, jac, rhs, bias):
         if not (isinstance(mass, SparseMatrix) and isinstance(jac, SparseMatrix)):
             return FullKKTLU(unroll_max=0).solve(
