@@ -90,27 +90,23 @@ def cases(cj) -> dict:
         return traj.q[-1]
 
     out["sim pendulum 20s"] = (jax.jit(pendulum_run), (jnp.asarray(1.0),))
-    contact = cyl.contact_system()
 
-    def release_run(theta0):
-        q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), c_args)
-        traj = cj.simulate(
-            contact, (0.0, 3.0), q0, qd0, c_args, solver=diffrax.Tsit5(),
-            stepsize_controller=controller, saveat=cj.SaveAt(t1=True),
-        )  # fmt: skip
-        return traj.q[-1]
+    def cylinders_run(system, t1):
+        """One run of the two cylinders from rest at `theta0`, the state at `t1`."""
 
+        def run(theta0):
+            q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), c_args)
+            traj = cj.simulate(
+                system, (0.0, t1), q0, qd0, c_args, solver=diffrax.Tsit5(),
+                stepsize_controller=controller, saveat=cj.SaveAt(t1=True),
+            )  # fmt: skip
+            return traj.q[-1]
+
+        return run
+
+    release_run = cylinders_run(cyl.contact_system(), 3.0)
+    attached_run = cylinders_run(cyl.system(), 0.8)
     out["sim release 1"] = (jax.jit(release_run), (jnp.asarray(0.3),))
-    attached = cyl.system()
-
-    def attached_run(theta0):
-        q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), c_args)
-        traj = cj.simulate(
-            attached, (0.0, 0.8), q0, qd0, c_args, solver=diffrax.Tsit5(),
-            stepsize_controller=controller, saveat=cj.SaveAt(t1=True),
-        )  # fmt: skip
-        return traj.q[-1]
-
     out["sim cylinders attached 1"] = (jax.jit(attached_run), (jnp.asarray(0.3),))
     out["sim release vmap 64"] = (
         jax.jit(jax.vmap(release_run)),
