@@ -211,15 +211,20 @@ _DRAW_OPTIONS = {
 }
 
 
-def _draw_program(system, treedef, static_leaves, with_constraints: bool):
+# Marks, in the leaves of `args` given to `_draw_program`, those that are inputs.
+_DYNAMIC = object()
+
+
+def _draw_program(system, treedef, kinds, with_constraints: bool):
     """`(q, qd, t, dynamic leaves of args, dq, dt) -> (M, A, dA along (dq, dt))`
-    (`A` and `dA` only `with_constraints`) at one state."""
+    (`A` and `dA` only `with_constraints`) at one state. `kinds`: the leaves of
+    `args`, `_DYNAMIC` where the program takes the leaf as an input."""
 
     def draw(q_r, qd_r, t_r, dynamic, dq, dt):
         dynamic = iter(dynamic)
         args_r = jax.tree_util.tree_unflatten(
             treedef,
-            [next(dynamic) if leaf is _DYNAMIC else leaf for leaf in static_leaves],
+            [next(dynamic) if leaf is _DYNAMIC else leaf for leaf in kinds],
         )
         mass_r = jax.jacfwd(system.momentum, argnums=1)(q_r, qd_r, t_r, args_r)
         if not with_constraints:
@@ -229,9 +234,6 @@ def _draw_program(system, treedef, static_leaves, with_constraints: bool):
         return mass_r, jac_r, djac_r
 
     return jax.jit(draw)
-
-
-_DYNAMIC = object()
 
 
 def _evaluate(system, dtype, args, n, k) -> Structure:
