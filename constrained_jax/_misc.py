@@ -104,9 +104,9 @@ def all_finite(tree: PyTree) -> Bool[Array, ""]:
     return ok
 
 
-def check_max_steps(max_steps) -> None:
+def check_max_steps(max_steps, name: str = "max_steps") -> None:
     if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
-        raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+        raise ValueError(f"`{name}` must be a positive int, got {max_steps!r}.")
 
 
 def inexact_asarray(x) -> Array:

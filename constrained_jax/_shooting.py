@@ -63,6 +63,7 @@ def solve_shooting(
     atol: float = 1e-11,
     root_tol: float = 1e-10,
     max_steps: int = 64,
+    ode_max_steps: int = 100_000,
     throw: bool = True,
 ) -> FunctionalSolution:
     """Solve the Euler-Lagrange equations of a functional by shooting.
@@ -81,6 +82,10 @@ def solve_shooting(
     - `root_tol`: tolerance of the Newton iteration (optimistix) on the shooting
         unknowns.
     - `max_steps`: the most Newton steps.
+    - `ode_max_steps`: the most steps of each trial's integration from `xL` to `xR`
+        (accepted and rejected). A trial that needs more is refused like one that
+        blows up (below). Lower it to bound the cost of a far start: each Newton
+        step integrates once, and a steep but finite trial may take many steps.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:**
@@ -96,8 +101,9 @@ def solve_shooting(
 
     !!! note "A start far from the solution"
 
-        Each trial integrates from `xL` to `xR` (at most 100,000 steps, with a floor
-        on the step at `16 eps max(|xL|, |xR|)`). A trial that does not reach `xR`
+        Each trial integrates from `xL` to `xR` (at most `ode_max_steps` steps,
+        100,000 by default, with a floor on the step at `16 eps max(|xL|, |xR|)`).
+        A trial that does not reach `xR`
         (its solution blows up, or needs more steps) gives a NaN residual, and the
         solve is refused (`RESULTS.nonfinite`), as is one that reaches a NaN
         iterate; such trials cost no integration after that (a `jax.vmap` batch
@@ -116,6 +122,7 @@ def solve_shooting(
         atol,
         root_tol,
         max_steps,
+        ode_max_steps,
     )
     return raise_if_failed(sol, throw)
 
@@ -132,6 +139,7 @@ def _solve_shooting(
     atol,
     root_tol,
     max_steps,
+    ode_max_steps,
 ):
     if not isinstance(functional, Functional):
         raise ValueError("`functional` must be a `cjax.Functional`.")
@@ -142,6 +150,7 @@ def _solve_shooting(
             "`cjax.solve_functional` (the direct method)."
         )
     check_max_steps(max_steps)
+    check_max_steps(ode_max_steps, "ode_max_steps")
     discretization = Chebyshev(num_nodes)
     dtype = functional.boundary[0].dtype
     shape = functional.boundary[0].shape
@@ -188,7 +197,7 @@ def _solve_shooting(
     term = diffrax.ODETerm(vector_field)
     # A floor on the step: a trial slope whose solution blows up (or turns NaN)
     # before `xR` stops after about 20 rejected steps instead of running each Newton
-    # step's integration to its 100,000 steps.
+    # step's integration to its `ode_max_steps`.
     x_left, x_right = jnp.asarray(xl, dtype), jnp.asarray(xr, dtype)
     controller, _ = step_floor(
         diffrax.PIDController(rtol=rtol, atol=atol), x_left, x_right
@@ -223,7 +232,7 @@ def _solve_shooting(
             saveat=saveat,
             stepsize_controller=controller,
             adjoint=diffrax.ForwardMode(),
-            max_steps=100_000,
+            max_steps=ode_max_steps,
             throw=False,
             # `Chebyshev.nodes` are sorted and inside `[xL, xR]`: no host callbacks
             # (diffrax's checks), so the program can be cached.

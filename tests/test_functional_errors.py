@@ -204,3 +204,23 @@ def test_shooting_from_a_far_start_is_refused_not_crept():
     one = jax.tree.map(lambda v: v[1], sol)
     xs = np.linspace(0.0, 1.0, 11)
     np.testing.assert_allclose(one(xs), ref["y"](xs), atol=1e-9)
+
+
+def test_shooting_ode_max_steps_bounds_each_trial():
+    """`ode_max_steps` caps each trial's integration: a start that converges with the
+    default (see the test above) is refused when no trial may reach `xR`, never
+    answered from a state short of it; a bad value is refused at once."""
+    fun = cat.functional(0.0, 0.0, 1.0, 0.0)
+    args = {"rho_g": jnp.asarray(1.0), "length": jnp.asarray(1.5)}
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="`ode_max_steps` must be a positive int"):
+            cjax.solve_shooting(fun, args, slope0=-2.3, ode_max_steps=bad)
+    sol = cjax.solve_shooting(
+        fun, args, slope0=-2.3, multipliers0=jnp.array([0.8]), ode_max_steps=4,
+        throw=False,
+    )  # fmt: skip
+    assert sol.result == cjax.RESULTS.nonfinite  # as documented for such trials
+    with pytest.raises(Exception, match="Nonfinite"):
+        cjax.solve_shooting(
+            fun, args, slope0=-2.3, multipliers0=jnp.array([0.8]), ode_max_steps=4
+        )
