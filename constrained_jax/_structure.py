@@ -5,7 +5,8 @@ constraint Jacobian `A` (k x n), and which rows of `A` are constant in `q` and `
 found by evaluating them concretely (outside the traced program) at two random states
 and taking the union of the nonzeros (NaN and inf count as nonzero). Float parameters
 in `args` are drawn at random too, so that a parameter that happens to be zero (a
-massless coordinate, `I = 0`) does not hide an entry that another value fills.
+massless coordinate, `I = 0`) does not hide an entry that another value fills; so are
+typed PRNG keys (`jax.random.key`; a raw `uint32` key is an integer array, below).
 
 A pattern found at random states can still miss an entry that is nonzero at the actual
 state (a `jnp.where` branch, a switch in `t` or in an integer parameter): the
@@ -109,11 +110,23 @@ def _is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
+def _is_prng_key(leaf) -> bool:
+    return hasattr(leaf, "dtype") and jax.dtypes.issubdtype(
+        leaf.dtype, jax.dtypes.prng_key
+    )
+
+
 def _random_like(leaf, rng):
-    """A random value of a leaf's shape and dtype (floats only; `None` for leaves
-    that cannot be drawn)."""
+    """A random value of a leaf's shape and dtype: floats (and typed PRNG keys, as
+    `jax.random.key` makes them) are drawn, concrete integers and booleans kept, and
+    a traced integer or boolean gives up."""
     if isinstance(leaf, (bool, int)) and not _is_tracer(leaf):
         return leaf
+    if _is_prng_key(leaf):
+        impl = jax.random.key_impl(leaf)
+        base = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0, impl=impl)))
+        bits = rng.integers(0, 2**32, size=tuple(leaf.shape) + base.shape)
+        return jax.random.wrap_key_data(np.asarray(bits, base.dtype), impl=impl)
     if isinstance(leaf, float):
         return float(rng.uniform(0.5, 1.5))
     if isinstance(leaf, complex):
@@ -138,6 +151,8 @@ class _GiveUp(Exception):
 def _leaf_key(leaf):
     if hasattr(leaf, "shape") and hasattr(leaf, "dtype"):
         key = (tuple(leaf.shape), str(leaf.dtype))
+        if _is_prng_key(leaf):
+            return key  # drawn at random, like a float
         if not _is_tracer(leaf) and not jnp.issubdtype(leaf.dtype, jnp.inexact):
             # Concrete integer/boolean parameters are used as they are: part of the key.
             key = key + (np.asarray(leaf).tobytes(),)

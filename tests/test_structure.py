@@ -273,6 +273,39 @@ def test_detection_falls_back_to_dense():
     )
 
 
+def test_prng_key_in_args_is_drawn_not_dense():
+    """A typed PRNG key in `args` (a Lagrangian with a random parameter) used to make
+    detection give up (dense: right, but the slow path). It is drawn like a float:
+    the chain's patterns are found, concrete or traced, and the answer is the dense
+    one's."""
+    args = chain.default_args()
+    q, qd = chain.state(2, 0.3, args, thetadot0=0.5)
+
+    def lagrangian(q_, qd_, t, args_):
+        g = args_["g"] * (1 + 0.01 * jax.random.normal(args_["key"]))
+        return chain.lagrangian(q_, qd_, t, {**args_, "g": g})
+
+    system = cjax.LagrangianSystem(lagrangian, cjax.Holonomic(chain.rods))
+    keyed = {**args, "key": jax.random.key(3)}
+    reference = chain.system().structure(q, jnp.asarray(0.0), args)
+    assert reference.detected and not reference.mass.all()
+
+    @jax.jit
+    def solve(q_, qd_, args_):
+        structure = system.structure(q_, jnp.asarray(0.0), args_)
+        assert structure.detected
+        assert np.array_equal(structure.mass, reference.mass)
+        assert np.array_equal(structure.jac, reference.jac)
+        return system.solve_accelerations(q_, qd_, 0.0, args_)
+
+    assert system.structure(q, jnp.asarray(0.0), keyed).detected
+    qdd, lam, singular = solve(q, qd, keyed)
+    assert not singular
+    qdd_ref, lam_ref, _ = _dense(system).solve_accelerations(q, qd, 0.0, keyed)
+    np.testing.assert_allclose(qdd, qdd_ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(lam, lam_ref, rtol=1e-12, atol=1e-12)
+
+
 def test_detection_is_cached():
     system = chain.system()
     args = chain.default_args()
