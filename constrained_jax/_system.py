@@ -49,7 +49,11 @@ PATTERN_MISMATCH_MESSAGE = (
 # Up to this many entries (or directions), the compressed products are taken apart
 # on scalars and the directional derivatives pushed one by one: code that XLA fuses
 # into one loop under `jax.vmap` (batched gathers, `dot`s and small reductions are
-# not fused on CPU). Larger systems use vmapped, array-level code.
+# not fused on CPU). Larger systems use vmapped, array-level code, and so do those
+# whose saddle-point solver is not unrolled scalar code itself
+# (`AbstractSaddlePointSolver.unrolled`: LAPACK or `SparseSchur` do not fuse either,
+# and the scalar assembly is larger to compile; a 4-link chain's `simulate`, 3,240 ->
+# 2,647 optimized HLO instructions, `benchmarks/README.md`).
 _UNROLL = 24
 
 
@@ -67,10 +71,10 @@ def off_constraints(system, q, qd, t, args, tol) -> Bool[Array, ""]:
     return jnp.invert(on)
 
 
-def _push(fn, primals, tangents: list):
+def _push(fn, primals, tangents: list, unroll: bool = True):
     """`(fn(*primals), [jvp of fn along each tangent])`: one linearisation, then the
     linear map applied to each tangent (unrolled when few, else vmapped)."""
-    if len(tangents) * primals[0].shape[0] <= _UNROLL:
+    if unroll and len(tangents) * primals[0].shape[0] <= _UNROLL:
         out, linear = jax.linearize(fn, *primals)
         return out, [linear(*tangent) for tangent in tangents]
     stacked = [jnp.stack(parts) for parts in zip(*tangents, strict=True)]
@@ -96,14 +100,16 @@ def _seeds(pattern: np.ndarray, dtype):
     return seeds, colours
 
 
-def _decompress(compressed, pattern: np.ndarray, colours: np.ndarray):
+def _decompress(
+    compressed, pattern: np.ndarray, colours: np.ndarray, unroll: bool = True
+):
     """The matrix from its compressed products `compressed[c] = sum over the columns
     j of colour c of column j`: dense when `pattern` is, else a `SparseMatrix`."""
     if pattern.all():
         # Every column has its own colour (colours == arange): the Jacobian itself.
         return compressed[np.argsort(colours)].T
     rows, cols = np.nonzero(pattern)
-    if len(rows) <= _UNROLL:
+    if unroll and len(rows) <= _UNROLL:
         # Static slices (fused under vmap) rather than a gather.
         values = jnp.stack(
             [compressed[colours[j], i] for i, j in zip(rows, cols, strict=True)]
@@ -118,7 +124,7 @@ def _decompress(compressed, pattern: np.ndarray, colours: np.ndarray):
     )
 
 
-def _probe_mismatch(compressed_t, pattern, colours, product):
+def _probe_mismatch(compressed_t, pattern, colours, product, unroll: bool = True):
     """Whether `product` (the matrix times the probe, by autodiff) differs beyond
     round-off from the sparse reconstruction times the probe.
 
@@ -132,7 +138,7 @@ def _probe_mismatch(compressed_t, pattern, colours, product):
     weights[i, colours[j]] = probe[j]
     eps = jnp.finfo(compressed_t.dtype).eps
     tol = 100 * (num_cols + 1) * eps
-    if rows * weights.shape[1] > _UNROLL:
+    if not unroll or rows * weights.shape[1] > _UNROLL:
         terms = compressed_t * jnp.asarray(weights, compressed_t.dtype)
         reconstruction = jnp.sum(terms, axis=1)
         scale = jnp.max(jnp.sum(jnp.abs(terms), axis=1)) + jnp.max(jnp.abs(product))
@@ -367,17 +373,20 @@ class LagrangianSystem(eqx.Module):
         tangents.append((qd, zero, jnp.ones((), dtype)))
         if checked:
             tangents.append((zero, jnp.asarray(probe_vector(n), dtype), zero_t))
-        (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents)
+        unroll = self.saddle_point_solver.unrolled(n, structure.jac.shape[0])
+        (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents, unroll)
         # The columns of M stacked apart from the other directions: under `jax.vmap`
         # a mass matrix that depends on `args` only then stays unbatched.
         columns = jnp.stack([d[1] for d in d_out[:num]])
         rhs = grad_q - d_out[num][1]
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
-        mass = _decompress(columns, structure.mass, colours)
+        mass = _decompress(columns, structure.mass, colours, unroll)
         mismatch = jnp.array(False)
         if checked:
-            mismatch = _probe_mismatch(columns.T, structure.mass, colours, d_out[-1][1])
+            mismatch = _probe_mismatch(
+                columns.T, structure.mass, colours, d_out[-1][1], unroll
+            )
         return mass, rhs, mismatch
 
     def _constraint_pass(self, q, qd, t, args, structure: Structure):
@@ -401,10 +410,11 @@ class LagrangianSystem(eqx.Module):
             products.append(products_c)
             bias.append(bias_c)
         products, bias = jnp.concatenate(products), jnp.concatenate(bias)
-        jac = _decompress(products[:, :num].T, structure.jac, colours)
+        unroll = self.saddle_point_solver.unrolled(n, k)
+        jac = _decompress(products[:, :num].T, structure.jac, colours, unroll)
         if checked:
             mismatch = _probe_mismatch(
-                products[:, :num], structure.jac, colours, products[:, -1]
+                products[:, :num], structure.jac, colours, products[:, -1], unroll
             )
         return jac, bias, mismatch
 

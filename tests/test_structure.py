@@ -306,6 +306,36 @@ def test_prng_key_in_args_is_drawn_not_dense():
     np.testing.assert_allclose(lam, lam_ref, rtol=1e-12, atol=1e-12)
 
 
+def test_assembly_follows_the_solver_scalar_or_array():
+    """`LagrangianSystem` writes its assembly on scalars (fused under `jax.vmap`) only
+    for a solver that is scalar code itself at that size; the 4-link chain's default
+    (`SparseSchur`, `n + k = 12`) assembles on arrays, `RangeSpaceLDL(unroll_max=12)`
+    on scalars. The two, and LAPACK's LU on dense matrices, agree to round-off, one
+    state and a batch, with the pattern check on."""
+    assert Automatic().unrolled(3, 2) and not Automatic().unrolled(8, 4)
+    assert RangeSpaceLDL(unroll_max=12).unrolled(8, 4)
+    assert not RangeSpaceLDL().unrolled(10, 5) and not SparseSchur().unrolled(2, 1)
+    assert FullKKTLU().unrolled(8, 4) and not FullKKTLU(unroll_max=0).unrolled(2, 1)
+    args = chain.default_args()
+    states = [chain.state(4, th, args, thetadot0=0.5 + th) for th in (0.1, 0.3, 0.7)]
+    q = jnp.stack([s_[0] for s_ in states])
+    qd = jnp.stack([s_[1] for s_ in states])
+    base = chain.system()
+    results = []
+    for solver in (None, RangeSpaceLDL(unroll_max=12), FullKKTLU(unroll_max=0)):
+        system = base if solver is None else cjax.LagrangianSystem(
+            base.lagrangian, base.constraints, saddle_point_solver=solver
+        )  # fmt: skip
+        fn = lambda q_, qd_, system=system: system.accelerations(q_, qd_, 0.0, args)
+        batch = jax.jit(jax.vmap(fn))(q, qd)
+        one = jax.jit(fn)(q[1], qd[1])
+        np.testing.assert_allclose(one[0], batch[0][1], rtol=1e-12, atol=1e-12)
+        results.append(batch)
+    for qdd, lam in results[1:]:
+        np.testing.assert_allclose(qdd, results[0][0], rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(lam, results[0][1], rtol=1e-11, atol=1e-11)
+
+
 def test_detection_is_cached():
     system = chain.system()
     args = chain.default_args()

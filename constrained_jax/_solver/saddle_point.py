@@ -73,6 +73,14 @@ class AbstractSaddlePointSolver(eqx.Module):
         `LagrangianSystem` then masks the solution itself."""
         return False
 
+    def unrolled(self, n: int, k: int) -> bool:
+        """Whether `solve` is unrolled scalar code for `n` unknowns and `k`
+        constraints, which XLA fuses under `jax.vmap`. `LagrangianSystem` then writes
+        its assembly of `M`, `A` and the bias on scalars too (for up to 24 entries),
+        so that a batch of states runs as one fused loop; otherwise on arrays, which
+        compiles to a smaller program. `True` by default."""
+        return True
+
 
 def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
     """Solve `P K x = L U x = b[perm]` given an LU factorisation whose pivots `zero`
@@ -116,6 +124,9 @@ class FullKKTLU(AbstractSaddlePointSolver):
 
     def reports_non_finite(self) -> bool:
         return True
+
+    def unrolled(self, n: int, k: int) -> bool:
+        return n + k <= self.unroll_max
 
     def solve(self, mass, jac, rhs, bias):
         mass, jac = as_dense(mass), as_dense(jac)
@@ -376,6 +387,9 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
     def reports_non_finite(self) -> bool:
         return True
 
+    def unrolled(self, n: int, k: int) -> bool:
+        return n + k <= self.unroll_max
+
     def solve(self, mass, jac, rhs, bias):
         n, k = rhs.shape[0], bias.shape[0]
         if n + k > self.unroll_max:
@@ -509,6 +523,10 @@ class Automatic(AbstractSaddlePointSolver):
     def reports_non_finite(self) -> bool:
         # Every solver `choose` returns does.
         return True
+
+    def unrolled(self, n: int, k: int) -> bool:
+        # Above `unroll_max`: `SparseSchur` or LAPACK's LU.
+        return n + k <= self.unroll_max
 
     def choose(self, mass, n: int, k: int) -> AbstractSaddlePointSolver:
         """The solver used for a mass matrix `mass` (dense or `SparseMatrix`)."""

@@ -557,6 +557,9 @@ class SparseSchur(AbstractSaddlePointSolver):
     def reports_non_finite(self) -> bool:
         return True
 
+    def unrolled(self, n: int, k: int) -> bool:
+        return False
+
     def solve(self, mass, jac, rhs, bias):
         if not (isinstance(mass, SparseMatrix) and isinstance(jac, SparseMatrix)):
             return FullKKTLU(unroll_max=0).solve(
