@@ -103,12 +103,11 @@ def solve_shooting(
 
         Each trial integrates from `xL` to `xR` (at most `ode_max_steps` steps,
         100,000 by default, with a floor on the step at `16 eps max(|xL|, |xR|)`).
-        A trial that does not reach `xR`
-        (its solution blows up, or needs more steps) gives a NaN residual, and the
-        solve is refused (`RESULTS.nonfinite`), as is one that reaches a NaN
-        iterate; such trials cost no integration after that (a `jax.vmap` batch
-        does not wait on them). Newton is undamped: start near the solution (e.g.
-        from a coarse [`constrained_jax.solve_functional`][]).
+        A trial that does not reach `xR` (its solution blows up, or needs more
+        steps) gives a NaN residual, and the solve is refused (`RESULTS.nonfinite`),
+        as is one that reaches a NaN iterate; such trials cost no integration after
+        that (a `jax.vmap` batch does not wait on them). Newton is undamped: start
+        near the solution (e.g. from a coarse [`constrained_jax.solve_functional`][]).
     """
     args = as_traced_args(args)
     sol = _solve_shooting(

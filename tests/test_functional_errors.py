@@ -1,5 +1,6 @@
 """Bad input to the functional solvers: trace-time ValueErrors and RESULTS statuses."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -220,7 +221,7 @@ def test_shooting_ode_max_steps_bounds_each_trial():
         throw=False,
     )  # fmt: skip
     assert sol.result == cjax.RESULTS.nonfinite  # as documented for such trials
-    with pytest.raises(Exception, match="Nonfinite"):
+    with pytest.raises(eqx.EquinoxRuntimeError, match="Nonfinite"):
         cjax.solve_shooting(
             fun, args, slope0=-2.3, multipliers0=jnp.array([0.8]), ode_max_steps=4
         )

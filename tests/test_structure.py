@@ -327,6 +327,18 @@ def test_assembly_follows_the_solver_scalar_or_array():
             base.lagrangian, base.constraints, saddle_point_solver=solver
         )  # fmt: skip
         fn = lambda q_, qd_, system=system: system.accelerations(q_, qd_, 0.0, args)
+        if solver is not None and not isinstance(solver, FullKKTLU):
+            # The two assemblies of the sparse patterns: gathers of the compressed
+            # products (arrays) or static slices of them (scalars).
+            assembly = jax.make_jaxpr(
+                lambda q_, qd_, s_=system: s_._equations(
+                    q_, qd_, jnp.asarray(0.0), args
+                )
+            )(q[0], qd[0])
+            default = jax.make_jaxpr(
+                lambda q_, qd_: base._equations(q_, qd_, jnp.asarray(0.0), args)
+            )(q[0], qd[0])
+            assert "gather" in str(default) and "gather" not in str(assembly)
         batch = jax.jit(jax.vmap(fn))(q, qd)
         one = jax.jit(fn)(q[1], qd[1])
         np.testing.assert_allclose(one[0], batch[0][1], rtol=1e-12, atol=1e-12)
