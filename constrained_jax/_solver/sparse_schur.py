@@ -349,13 +349,36 @@ def _sum_index(targets, size, pad):
     return _pad(lists, pad)
 
 
+def _take(values, index):
+    """`values[index]` for a static integer array `index` (along the first axis): a
+    slice where the positions are evenly spaced (the identity, a range, a stride),
+    else a gather. Most index arrays of a plan are such ranges for diagonal blocks
+    (the identity of `M`'s pattern, its blocks in order), and a slice compiles to
+    less than a gather with a constant index."""
+    index = np.asarray(index)
+    flat = index.reshape(-1)
+    if flat.size == 0:
+        return values[index]
+    start = int(flat[0])
+    step = int(flat[1] - flat[0]) if flat.size > 1 else 1
+    if step >= 1 and np.array_equal(flat, start + step * np.arange(flat.size)):
+        stop = start + step * (flat.size - 1) + 1
+        if start == 0 and step == 1 and stop == values.shape[0]:
+            out = values
+        else:
+            out = jax.lax.slice_in_dim(values, start, stop, step)
+        return out.reshape(index.shape + values.shape[1:])
+    return values[index]
+
+
 def _gather_sum(values, index):
     """`out[t] = sum(values[index[t]])`, with the padding index `len(values)` read
     as zero: a segment sum written as a gather."""
-    values = jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
+    if np.any(index >= values.shape[0]):
+        values = jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
     if index.shape[1] == 1:
-        return values[index[:, 0]]
-    return jnp.sum(values[index], axis=1)
+        return _take(values, index[:, 0])
+    return jnp.sum(_take(values, index), axis=1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -371,7 +394,7 @@ def _factor_mass(plan, values, threshold):
     parts, bad = [], jnp.array(False)
     for coords, index in plan.groups:
         s = coords.shape[1]
-        a = [[values[index[i, j]] for j in range(s)] for i in range(s)]
+        a = [[_take(values, index[i, j]) for j in range(s)] for i in range(s)]
         if s == 1:
             small = a[0][0] <= threshold
             bad = bad | jnp.any(small)
@@ -396,14 +419,14 @@ def _apply_blocks(plan, minv, v):
     for coords, _ in plan.groups:
         nb, s = coords.shape
         blocks = minv[offset : offset + s * s * nb].reshape(s, s, nb)
-        out.append(jnp.sum(blocks * v[coords.T][None], axis=1).T.reshape(-1))
+        out.append(jnp.sum(blocks * _take(v, coords.T)[None], axis=1).T.reshape(-1))
         offset += s * s * nb
-    return jnp.concatenate(out)[plan.block_inverse]
+    return _take(jnp.concatenate(out), plan.block_inverse)
 
 
 def _spmv(values, cols, v, by_row):
     """`B v` for the sparse `B` with `values` at columns `cols`, summed by row."""
-    return _gather_sum(values * v[cols], by_row)
+    return _gather_sum(values * _take(v, cols), by_row)
 
 
 def _schur_solve(plan, s_values, g, threshold):
@@ -411,26 +434,26 @@ def _schur_solve(plan, s_values, g, threshold):
     a pivot at or below `threshold` (redundant constraints, or an indefinite `S`)."""
     factors, bad = [], jnp.array(False)
     for level in plan.levels:
-        d = s_values[level.diag]
+        d = _take(s_values, level.diag)
         small = d <= threshold
         bad = bad | jnp.any(small)
         d = jnp.where(small, 1.0, d)
-        column = s_values[level.col_entry]
-        lower = column / d[level.col_pivot]
+        column = _take(s_values, level.col_entry)
+        lower = column / _take(d, level.col_pivot)
         kept = jnp.concatenate([s_values, jnp.zeros((1,), s_values.dtype)])
-        s_values = kept[level.keep]
+        s_values = _take(kept, level.keep)
         if level.upd_a.size:
-            delta = column[level.upd_a] * lower[level.upd_b]
+            delta = _take(column, level.upd_a) * _take(lower, level.upd_b)
             s_values = s_values - _gather_sum(delta, level.update_sum)
         factors.append((d, lower))
     # Forward substitution, the active nodes shrinking level by level.
     y, pivot_values = g, []
     for level, (_, lower) in zip(plan.levels, factors, strict=True):
-        y_pivots = y[level.pivots]
+        y_pivots = _take(y, level.pivots)
         pivot_values.append(y_pivots)
-        y = y[level.keep_nodes]
+        y = _take(y, level.keep_nodes)
         if level.col_row.size:
-            y = y - _gather_sum(lower * y_pivots[level.col_pivot], level.row_sum)
+            y = y - _gather_sum(lower * _take(y_pivots, level.col_pivot), level.row_sum)
     # Back substitution, the active nodes growing back.
     x = y
     for level, (d, lower), y_pivots in reversed(
@@ -438,8 +461,10 @@ def _schur_solve(plan, s_values, g, threshold):
     ):
         x_pivots = y_pivots / d
         if level.col_row.size:
-            x_pivots = x_pivots - _gather_sum(lower * x[level.col_row], level.pivot_sum)
-        x = jnp.concatenate([x_pivots, x])[level.merge]
+            x_pivots = x_pivots - _gather_sum(
+                lower * _take(x, level.col_row), level.pivot_sum
+            )
+        x = _take(jnp.concatenate([x_pivots, x]), level.merge)
     return x, bad
 
 
@@ -450,7 +475,7 @@ def _band_solve(plan, s_values, g, threshold):
     w = plan.band_width
     dtype = s_values.dtype
     padded = jnp.concatenate([s_values, jnp.zeros((1,), dtype)])
-    columns = padded[plan.band_index]  # (k, w + 1)
+    columns = _take(padded, plan.band_index)  # (k, w + 1)
     last = jnp.zeros((1,), dtype)
 
     def factor(carry, inputs):
@@ -472,7 +497,7 @@ def _band_solve(plan, s_values, g, threshold):
 
     natural = np.array_equal(plan.band_order, np.arange(len(plan.band_order)))
     init = (jnp.zeros((w, w), dtype), jnp.zeros((w,), dtype))
-    inputs = (columns, g if natural else g[plan.band_order])
+    inputs = (columns, g if natural else _take(g, plan.band_order))
     _, (d, lower, y, small) = jax.lax.scan(factor, init, inputs)
 
     def back(window, inputs):
@@ -483,7 +508,7 @@ def _band_solve(plan, s_values, g, threshold):
         return x[None], x
 
     _, x = jax.lax.scan(back, jnp.zeros((w,), dtype), (d, lower, y), reverse=True)
-    return (x if natural else x[plan.band_inverse]), jnp.any(small)
+    return (x if natural else _take(x, plan.band_inverse)), jnp.any(small)
 
 
 class SparseSchur(AbstractSaddlePointSolver):
@@ -583,7 +608,9 @@ class SparseSchur(AbstractSaddlePointSolver):
             x, lam, at_lam = u, jnp.zeros((0,), dtype), jnp.zeros_like(u)
         else:
             s_values = _gather_sum(
-                a_values[plan.s_a1] * minv[plan.s_minv] * a_values[plan.s_a2],
+                _take(a_values, plan.s_a1)
+                * _take(minv, plan.s_minv)
+                * _take(a_values, plan.s_a2),
                 plan.s_sum,
             )
             g = -bias - _spmv(a_values, plan.a_cols, u, plan.a_by_row)
