@@ -164,3 +164,54 @@ def test_system_uses_its_solver():
         cjax.LagrangianSystem(
             cyl.system().lagrangian, saddle_point_solver=cjax.DenseLU()
         )
+
+
+class _PlainDense(cjax.AbstractSaddlePointSolver):
+    """A solver of the user's: a dense solve of the KKT matrix, which takes dense
+    arrays (`structured()` is `False`) and reports nothing (`singular` always
+    false, `reports_non_finite()` false)."""
+
+    def solve(self, mass, jac, rhs, bias):
+        n, k = mass.shape[0], jac.shape[0]
+        matrix = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k), mass.dtype)]])
+        sol = jnp.linalg.solve(matrix, jnp.concatenate([rhs, -bias]))
+        return sol[:n], sol[n:], jnp.asarray(False)
+
+
+class _ChoosesPlain(cjax.Automatic):
+    """`Automatic` whose `choose` returns the user's solver."""
+
+    def choose(self, mass, n, k):
+        return _PlainDense()
+
+
+@pytest.mark.parametrize("unroll_max", [0, 6], ids=["chosen", "fast-path-fallback"])
+def test_automatic_choosing_a_solver_of_the_users(unroll_max):
+    """An `Automatic` subclass whose `choose` returns a solver of the user's: that
+    solver gets dense arrays (it is not structured), and `Automatic` keeps its
+    promise `reports_non_finite()` for it: a non-finite answer is `singular`, with
+    zeros. `unroll_max=0`: the chosen solver solves every state; `6`: the diagonal
+    fast path solves the pendulum and the user's solver is its fallback for a
+    vanishing mass."""
+    pend = cjax.scenes.pendulum
+    base = pend.system()
+    system = cjax.LagrangianSystem(
+        base.lagrangian,
+        base.constraints,
+        saddle_point_solver=_ChoosesPlain(unroll_max=unroll_max),
+    )
+    solve = jax.jit(system.solve_accelerations)
+    args = pend.default_args()
+    q, qd = pend.state(0.4, 0.3, args)
+    qdd, lam, singular = solve(q, qd, 0.0, args)
+    ref_qdd, ref_lam, _ = base.solve_accelerations(q, qd, 0.0, args)
+    assert not singular
+    np.testing.assert_allclose(qdd, ref_qdd, rtol=1e-12)
+    np.testing.assert_allclose(lam, ref_lam, rtol=1e-12)
+    # A massless bob: the KKT matrix is singular, and the dense solve is not finite
+    # (the fast path's fallback, or the chosen solver).
+    massless = dict(args, m=jnp.asarray(0.0))
+    for q_, args_ in ((q.at[0].set(jnp.nan), args), (q, massless)):
+        qdd, lam, singular = solve(q_, qd, 0.0, args_)
+        assert singular
+        assert jnp.all(qdd == 0) and jnp.all(lam == 0)

@@ -510,6 +510,11 @@ class Automatic(AbstractSaddlePointSolver):
     faster). So the default is never the slower one for a single trajectory; pass
     `RangeSpaceLDL()` (unrolled up to 12) for large batches of mid-sized systems.
 
+    A subclass may override `choose` to return any solver, one of the user's
+    included: it gets `M` and `A` as dense arrays unless it is `structured()`, and
+    a solution of it that is not finite is reported as `singular` (with zeros), as
+    `reports_non_finite()` promises.
+
     **Arguments:**
 
     - `unroll_max`: the largest `n + k` solved by the unrolled elimination.
@@ -521,7 +526,8 @@ class Automatic(AbstractSaddlePointSolver):
         return True
 
     def reports_non_finite(self) -> bool:
-        # Every solver `choose` returns does.
+        # Every solver `choose` returns does; `solve` masks the answer of one that
+        # does not (a subclass whose `choose` returns a solver of the user's).
         return True
 
     def unrolled(self, n: int, k: int) -> bool:
@@ -541,13 +547,19 @@ class Automatic(AbstractSaddlePointSolver):
     def solve(self, mass, jac, rhs, bias):
         n, k = rhs.shape[0], bias.shape[0]
         solver = self.choose(mass, n, k)
+        from .sparse_schur import SparseSchur
+
+        general = solver.solve
+        if not (solver.structured() or isinstance(solver, SparseSchur)):
+            # LAPACK's LU, or a solver of the user's that takes dense arrays.
+            general = functools.partial(_dense_inputs, general)
+        if not solver.reports_non_finite():
+            general = functools.partial(_report_non_finite, general)
         if self._diagonal_fast_path(mass, jac, n, k):
             from .diagonal import diagonal_solve
 
-            return diagonal_solve(mass, jac, rhs, bias, solver.solve)
-        if isinstance(solver, FullKKTLU):
-            mass, jac = as_dense(mass), as_dense(jac)
-        return solver.solve(mass, jac, rhs, bias)
+            return diagonal_solve(mass, jac, rhs, bias, general)
+        return general(mass, jac, rhs, bias)
 
     def _diagonal_fast_path(self, mass, jac, n: int, k: int) -> bool:
         """Whether the unrolled diagonal range-space method applies: a structurally
@@ -560,6 +572,21 @@ class Automatic(AbstractSaddlePointSolver):
         present = np.zeros((n,), bool)
         present[list(mass.rows)] = True
         return bool(np.all(present | ~coupled_columns(jac, n)))
+
+
+def _dense_inputs(solve, mass, jac, rhs, bias):
+    """`solve` on `M` and `A` as dense arrays."""
+    return solve(as_dense(mass), as_dense(jac), rhs, bias)
+
+
+def _report_non_finite(solve, mass, jac, rhs, bias):
+    """`solve`, with a solution that is not finite reported as `singular` (zeros)."""
+    x, lam, singular = solve(mass, jac, rhs, bias)
+    n = x.shape[0]
+    sol = jnp.concatenate([x, lam])
+    singular = singular | jnp.invert(jnp.all(jnp.isfinite(sol)))
+    sol = jnp.where(singular, 0.0, sol)
+    return sol[:n], sol[n:], singular
 
 
 def _block_diagonal(pattern: np.ndarray) -> bool:
