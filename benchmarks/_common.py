@@ -20,6 +20,17 @@ import numpy as np
 import constrained_jax as cjax
 
 
+def fresh_caches() -> None:
+    """Forget every compiled program and traced function (`jax.clear_caches()`) and
+    the library's cache of detected sparsity patterns, so that the next call of a
+    system is a first call: its trace includes structure detection."""
+    from constrained_jax import _structure
+
+    jax.clear_caches()
+    with _structure._LOCK:
+        _structure._CACHE.clear()
+
+
 def memory_analysis(compiled) -> dict:
     try:
         stats = compiled.memory_analysis()

@@ -35,7 +35,7 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine_info, memory_analysis  # noqa: E402
+from _common import fresh_caches, machine_info, memory_analysis  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
 from constrained_jax.scenes import chain  # noqa: E402
@@ -90,6 +90,8 @@ def _median_time(compiled, *args, repeats):
 
 
 def _compile(fn, *args):
+    # A first call: nothing compiled, traced or detected before it.
+    fresh_caches()
     t0 = time.perf_counter()
     lowered = jax.jit(fn).lower(*args)
     t1 = time.perf_counter()

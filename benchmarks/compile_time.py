@@ -9,8 +9,8 @@ program (Tsit5) -- reports the seconds of tracing + lowering
 CPU time of the process (less sensitive to a busy machine), the size of the
 optimized HLO module (instructions, `while` loops, `conditional`s) and how many
 times the Lagrangian is traced (calls of a Python wrapper around it while tracing).
-Medians of `--repeats` runs, `jax.clear_caches()` before each (and no persistent
-compilation cache).
+Medians of `--repeats` runs, `jax.clear_caches()` and the library's cache of detected
+sparsity patterns cleared before each (and no persistent compilation cache).
 
     python benchmarks/compile_time.py [--repeats 3] [--only a,a',floor,b,c]
 
@@ -30,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _common import write_cases  # noqa: E402
+from _common import fresh_caches, write_cases  # noqa: E402
 
 import constrained_jax as cjax  # noqa: E402
 from constrained_jax.scenes import (  # noqa: E402
@@ -160,7 +160,7 @@ def hlo_counts(text: str) -> dict:
 def measure(make, repeats: int) -> dict:
     runs = []
     for _ in range(repeats):
-        jax.clear_caches()
+        fresh_caches()
         module, fn, inputs = make()
         with _Counted(module) as counter:
             start, cpu_start = time.perf_counter(), time.process_time()
