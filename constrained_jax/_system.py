@@ -31,7 +31,6 @@ from ._misc import full_precision, inexact_asarray
 from ._solver import kkt_derivative
 from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
 from ._solver.sparse import SparseMatrix
-from ._solver.sparse_schur import SparseSchur
 from ._structure import colouring, dense_structure, detect, probe_vector, Structure
 
 
@@ -82,11 +81,6 @@ def _push(fn, primals, tangents: list, unroll: bool = True):
     out, d_out = jax.vmap(along, out_axes=(None, 0))(*stacked)
     take = lambda i: jax.tree_util.tree_map(lambda x: x[i], d_out)
     return out, [take(i) for i in range(len(tangents))]
-
-
-def _takes_sparse(solver) -> bool:
-    # `SparseSchur` takes sparse matrices by its interface.
-    return solver.structured() or isinstance(solver, SparseSchur)
 
 
 def _seeds(pattern: np.ndarray, dtype):
@@ -333,7 +327,7 @@ class LagrangianSystem(eqx.Module):
         the saddle-point solver takes sparse matrices, dense otherwise."""
         n = q.shape[0]
         k = self.num_constraints(n, args, q.dtype)
-        if not _takes_sparse(self.saddle_point_solver):
+        if not self.saddle_point_solver.structured():
             return dense_structure(n, k)
         return detect(self, q, t, args, n, k)
 

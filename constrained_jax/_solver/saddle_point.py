@@ -547,10 +547,8 @@ class Automatic(AbstractSaddlePointSolver):
     def solve(self, mass, jac, rhs, bias):
         n, k = rhs.shape[0], bias.shape[0]
         solver = self.choose(mass, n, k)
-        from .sparse_schur import SparseSchur
-
         general = solver.solve
-        if not (solver.structured() or isinstance(solver, SparseSchur)):
+        if not solver.structured():
             # LAPACK's LU, or a solver of the user's that takes dense arrays.
             general = functools.partial(_dense_inputs, general)
         if not solver.reports_non_finite():

@@ -579,6 +579,9 @@ class SparseSchur(AbstractSaddlePointSolver):
 
     method: str = eqx.field(default="auto", static=True)
 
+    def structured(self) -> bool:
+        return True
+
     def reports_non_finite(self) -> bool:
         return True
 
