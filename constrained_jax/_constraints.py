@@ -90,6 +90,11 @@ class AbstractConstraint(eqx.Module):
         return jnp.zeros((0,), q.dtype)
 
 
+# The most directions (colours of `A`, the probe and the bias) that `jacobian_products`
+# applies one by one; more are pushed together by `jax.vmap`.
+_FEW_DIRECTIONS = 8
+
+
 class Holonomic(AbstractConstraint):
     """Holonomic constraints `G(q, t, args) = 0`, shape `(k,)` (a scalar is `k = 1`).
 
@@ -133,9 +138,12 @@ class Holonomic(AbstractConstraint):
         dqs = jnp.concatenate([jnp.asarray(directions, q.dtype), qd[None]])
         t = jnp.asarray(t, q.dtype)
         dts = jnp.concatenate([jnp.zeros((s,), q.dtype), jnp.ones((1,), q.dtype)])
-        if (s + 1) * q.shape[0] <= 24:
+        if (s + 1) * q.shape[0] <= 24 or s + 1 <= _FEW_DIRECTIONS:
             # Few directions: one linearisation, its linear map applied to each
-            # (fused under vmap).
+            # (fused under vmap; on arrays, each application keeps its temporaries
+            # the size of `q`, where `jax.vmap` over the directions makes them
+            # `s + 1` times larger, which a batch of states then streams through
+            # memory).
             _, linear = jax.linearize(with_velocity, q, t)
             outs = [linear(dqs[i], dts[i]) for i in range(s + 1)]
             d_position = jnp.stack([o[0] for o in outs[:s]], axis=1)
