@@ -4,6 +4,7 @@ dense path (`FullKKTLU`, dense `M` and `A` by `jacfwd`) and closed forms, and ri
 refused when a detected pattern misses an entry."""
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -442,3 +443,38 @@ def test_projection_uses_structure_and_agrees():
     np.testing.assert_allclose(q1, q2, atol=1e-13)
     np.testing.assert_allclose(qd1, qd2, atol=1e-13)
     np.testing.assert_allclose(chain.link_lengths(q1), 1.0, atol=1e-9)
+
+
+def test_constraint_products_keep_temporaries_the_size_of_q():
+    """`Holonomic.jacobian_products` applies its linearisation to a few directions
+    one by one: its arithmetic runs on arrays the size of `q` (under `jax.vmap` over
+    states, temporaries `s + 1` times larger streamed through memory made the
+    chain's batched equations of motion 1.1-1.3x slower, `benchmarks/README.md`).
+    Checked on the traced program (fails when the directions are vmapped), and the
+    products against the dense Jacobian."""
+    args = chain.default_args()
+    n_links = 16
+    q, qd = chain.state(n_links, 0.4, args, thetadot0=0.3)
+    n = q.shape[0]
+    rods = chain.system().constraints[0]
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(5, n))  # as many as the chain's colours + probe
+    fn = lambda q_, qd_: rods.jacobian_products(q_, qd_, 0.0, args, directions)
+    jaxpr = jax.make_jaxpr(fn)(q, qd)
+    arithmetic = {"add", "sub", "mul", "div", "neg", "integer_pow", "square"}
+
+    def sizes(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name in arithmetic:
+                yield from (int(np.prod(v.aval.shape)) for v in eqn.outvars)
+            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+                yield from sizes(sub)
+
+    assert max(sizes(jaxpr.jaxpr)) <= n
+    products, bias = jax.jit(fn)(q, qd)
+    jac = jax.jacfwd(lambda q_: rods.fn(q_, 0.0, args))(q)
+    np.testing.assert_allclose(products, jac @ directions.T, rtol=1e-12, atol=1e-12)
+    velocity = lambda q_: jax.jvp(lambda x: rods.fn(x, 0.0, args), (q_,), (qd,))[1]
+    np.testing.assert_allclose(
+        bias, jax.jvp(velocity, (q,), (qd,))[1], rtol=1e-12, atol=1e-12
+    )
