@@ -135,19 +135,21 @@ class Holonomic(AbstractConstraint):
             return jax.jvp(with_velocity, (q, t), (dq, dt))[1]
 
         s = directions.shape[0]
-        dqs = jnp.concatenate([jnp.asarray(directions, q.dtype), qd[None]])
         t = jnp.asarray(t, q.dtype)
-        dts = jnp.concatenate([jnp.zeros((s,), q.dtype), jnp.ones((1,), q.dtype)])
         if (s + 1) * q.shape[0] <= 24 or s + 1 <= _FEW_DIRECTIONS:
             # Few directions: one linearisation, its linear map applied to each
             # (fused under vmap; on arrays, each application keeps its temporaries
             # the size of `q`, where `jax.vmap` over the directions makes them
             # `s + 1` times larger, which a batch of states then streams through
-            # memory).
+            # memory). The directions stay constants: stacked with `qdot`, they
+            # would be copied for every state of a batch.
             _, linear = jax.linearize(with_velocity, q, t)
-            outs = [linear(dqs[i], dts[i]) for i in range(s + 1)]
-            d_position = jnp.stack([o[0] for o in outs[:s]], axis=1)
-            return d_position, outs[s][1]
+            zero_t = jnp.zeros((), q.dtype)
+            columns = [linear(jnp.asarray(d, q.dtype), zero_t)[0] for d in directions]
+            bias = linear(qd, jnp.ones((), q.dtype))[1]
+            return jnp.stack(columns, axis=1), bias
+        dqs = jnp.concatenate([jnp.asarray(directions, q.dtype), qd[None]])
+        dts = jnp.concatenate([jnp.zeros((s,), q.dtype), jnp.ones((1,), q.dtype)])
         d_position, d_velocity = jax.vmap(along)(dqs, dts)
         return d_position[:s].T, d_velocity[s]
 
