@@ -125,7 +125,8 @@ class Holonomic(AbstractConstraint):
     def jacobian_products(self, q, qd, t, args, directions):
         # One traced copy of G with two nested forward passes: the outer tangent
         # (v, 0) gives dG/dq v = A v; the outer tangent (qdot, 1) applied to the
-        # velocity residual (the inner pass) gives the bias. All directions at once.
+        # velocity residual (the inner pass) gives the bias. Few directions one by
+        # one, many at once (below).
         fn = lambda q_, t_: self.position_residual(q_, t_, args)
 
         def with_velocity(q_, t_):

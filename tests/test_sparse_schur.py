@@ -11,7 +11,7 @@ import pytest
 
 import constrained_jax as cj
 from constrained_jax._solver.sparse import SparseMatrix
-from constrained_jax._solver.sparse_schur import _band_order, _plan
+from constrained_jax._solver.sparse_schur import _band_order, _gather_sum, _plan, _take
 from constrained_jax.scenes import chain
 
 
@@ -306,3 +306,33 @@ def test_structurally_zero_diagonal_is_dense(getkey):
     )
     assert singular == singular_ref
     assert jnp.allclose(x, x_ref, rtol=1e-12) and jnp.allclose(lam, lam_ref, rtol=1e-12)
+
+
+def test_static_indices_as_slices_or_gathers():
+    """`_take` reads evenly spaced static indices as slices (the identity, a range, a
+    stride, a single position, 2-D index arrays) and anything else as a gather, with
+    NumPy's answer in every case, also under `jax.vmap`; `_gather_sum` pads only when
+    an index reads the padding slot."""
+    values = np.arange(10.0) ** 2 + 1
+    cases = [
+        np.arange(10),
+        np.arange(2, 7),
+        np.arange(1, 10, 3),
+        np.array([4]),
+        np.array(7),
+        np.arange(6).reshape(2, 3),
+        np.array([3, 1, 4, 1, 5]),
+        np.array([[0, 2], [5, 9]]),
+        np.zeros((0,), int),
+    ]
+    for index in cases:
+        np.testing.assert_array_equal(_take(jnp.asarray(values), index), values[index])
+    batch = np.stack([values, -values])
+    for index in cases[:3] + cases[6:7]:
+        out = jax.vmap(lambda v, index=index: _take(v, index))(jnp.asarray(batch))
+        np.testing.assert_array_equal(out, batch[:, index])
+    padded = np.append(values, 0.0)
+    for index in (np.array([[0, 1], [2, 10]]), np.array([[0, 1], [2, 3]])):
+        np.testing.assert_array_equal(
+            _gather_sum(jnp.asarray(values), index), padded[index].sum(axis=1)
+        )
