@@ -27,6 +27,13 @@ if _FLAGS_KNOWN and os.environ.get("CONSTRAINED_JAX_TEST_XLA_DEFAULTS", "0") != 
         + " --xla_cpu_use_fusion_emitters=false"
         + " --xla_cpu_parallel_codegen_split_count=1"
     ).strip()
+elif _FLAGS_KNOWN:
+    # XLA's default said out loud, so that the tour run in-process
+    # (`test_cli.py`), whose `main` turns on the older code generator unless the
+    # user's `XLA_FLAGS` choose, leaves this worker on the default.
+    os.environ["XLA_FLAGS"] = (
+        USER_XLA_FLAGS + " --xla_cpu_use_fusion_emitters=true"
+    ).strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

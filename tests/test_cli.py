@@ -16,8 +16,10 @@ import sys
 import pytest
 
 import constrained_jax.__main__ as cli
-from constrained_jax import tour as tour_entries
+from constrained_jax import _code_generator, tour as tour_entries
 from constrained_jax.__main__ import main
+
+from .helpers import run_python
 
 
 SCENES = [
@@ -231,6 +233,40 @@ def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
     assert "SOME CHECKS FAILED" in out
     (failed,) = [line for line in out.splitlines() if line.endswith("FAIL")]
     assert "radius a" in failed
+
+
+def test_the_older_code_generator_by_default():
+    """A fresh `constrained-jax` process compiles with XLA:CPU's older code generator
+    (`cjax.use_fast_compilation`) and says so; `--xla-defaults` keeps XLA's default
+    (the flag is then never set: `use_fast_compilation` is not called)."""
+    run = run_python(
+        "import sys; from constrained_jax.__main__ import main; "
+        "code = main(['scene', 'cylinder_volume', '--no-plots', "
+        "'--no-compilation-cache']); "
+        "import os; print('XLA_FLAGS=' + os.environ.get('XLA_FLAGS', '')); "
+        "sys.exit(code)",
+        timeout=600,
+        XLA_FLAGS=None,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    if importlib.metadata.version("jaxlib") in _code_generator._KNOWN_JAXLIB:
+        assert "compilation included, XLA:CPU's older code generator" in run.stdout
+        assert "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false" in run.stdout
+    else:
+        assert "compilation included, XLA's default code generator" in run.stdout
+
+
+def test_xla_defaults_switch(monkeypatch):
+    from constrained_jax import _code_generator as module
+
+    def fail():
+        raise AssertionError("use_fast_compilation called despite --xla-defaults")
+
+    monkeypatch.setattr(module, "use_fast_compilation", fail)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
+    assert cli._code_generator(True) == "XLA's default code generator"
+    assert cli._parser().parse_args(["tour", "--xla-defaults"]).xla_defaults
+    assert not cli._parser().parse_args(["tour"]).xla_defaults
 
 
 def test_nan_never_passes():
