@@ -19,9 +19,11 @@ Rows (float64, after compilation, medians; ratios within this run):
    `N = 4` the default against LAPACK's LU (`FullKKTLU(unroll_max=0)`): run and
    compile.
 
-    python benchmarks/targets.py [--out benchmarks/results]
+    python benchmarks/targets.py [--out benchmarks/results] [--fast-compilation]
 
-Writes `targets.json` and prints the table for `README.md`.
+Writes `targets.json` and prints the table for `README.md`. `--fast-compilation`
+measures with XLA:CPU's older code generator (`cjax.use_fast_compilation()`) and
+writes `targets_fast_compilation.json`.
 """
 
 import argparse
@@ -189,10 +191,21 @@ def main() -> None:
         "--out",
         default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"),
     )
+    parser.add_argument(
+        "--fast-compilation",
+        action="store_true",
+        help="XLA:CPU's older code generator (cjax.use_fast_compilation()); writes "
+        "targets_fast_compilation.json",
+    )
     opts = parser.parse_args()
+    if opts.fast_compilation:
+        import constrained_jax as cjax
+
+        assert cjax.use_fast_compilation()
     rows = measure(opts)
     os.makedirs(opts.out, exist_ok=True)
-    path = os.path.join(opts.out, "targets.json")
+    name = "targets_fast_compilation" if opts.fast_compilation else "targets"
+    path = os.path.join(opts.out, f"{name}.json")
     with open(path, "w") as f:
         json.dump({"machine": machine_info(), "rows": rows}, f, indent=1,
                   default=lambda x: np.asarray(x).tolist())  # fmt: skip

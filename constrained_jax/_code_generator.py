@@ -3,13 +3,14 @@
 XLA compiles each program once per process (seconds for a simulation; the solves take
 milliseconds), so a first run, a notebook or a tour is mostly compilation. On the CPU,
 XLA's newer fusion emitters compile our programs about 2x slower than its older code
-generator (`benchmarks/README.md`, "XLA:CPU's older code generator"): the first
-`jit(simulate)` of the two rolling cylinders compiles in 0.98 s instead of 2.64 s,
-the tour's release program in 6.0 s instead of 8.0 s, and `constrained-jax tour`
-takes 54-58 s instead of 79-81 s. The price is run time where a program is big and
-batched (the two cylinders' equations of motion over 1e4 states: 25 % slower); small
-and unbatched programs run as fast. So it is not the library's default: the command
-line turns it on (`--xla-defaults` keeps XLA's), and users opt in with
+generator (`benchmarks/code_generator.py`; table in `benchmarks/README.md`, "XLA:CPU's
+older code generator, opt-in"): in a fresh process the first `jit(simulate)` of the
+two rolling cylinders takes 1.5 s instead of 2.5 s (XLA's part 0.7 s instead of 1.6
+s), the tour's release program 4.8 s instead of 6.1 s, and `constrained-jax tour` 24-27
+s instead of 36-41 s. The price is run time: 0-27 % slower (the two cylinders'
+equations of motion batched over 1e4 states 27 %, a gradient through `simulate` 22 %,
+one trajectory 5 %). So it is not the library's default: the command line turns it on
+(`--xla-defaults` keeps XLA's), and users opt in with
 [`constrained_jax.use_fast_compilation`][] at the top of a script or a notebook.
 
 XLA reads its flags (the environment variable `XLA_FLAGS`) once, when JAX starts its
@@ -51,16 +52,17 @@ def _user_choice(flags: str) -> bool | None:
 
 def use_fast_compilation() -> bool:
     """Compile with XLA:CPU's older code generator for the rest of the process: about
-    2x faster compilation, the same results to round-off, and slower run time for big
-    batched programs.
+    2x faster compilation by XLA, the same results to round-off, and up to 27 % slower
+    run time.
 
-    Compilation dominates first runs, notebooks and parameter studies that compile
-    more than they run: `constrained-jax tour` takes 54-58 s instead of 79-81 s, the
-    first `jit(simulate)` of the two rolling cylinders compiles in 0.98 s instead of
-    2.64 s. The equations of motion of the two cylinders batched over 1e4 states run
-    25 % slower; small unbatched programs (one trajectory, one solve) run as fast.
-    Measured on a 2-core CPU; `benchmarks/README.md` has the numbers and commands.
-    Only the CPU is affected (XLA's GPU compiler ignores the flag).
+    For work that compiles more than it runs (first runs, notebooks, small studies):
+    `constrained-jax tour` takes 24-27 s instead of 36-41 s, the first
+    `jit(simulate)` of the two rolling cylinders 1.5 s instead of 2.5 s (XLA's part
+    0.7 s instead of 1.6 s). Compiled programs run 0-27 % slower: the two cylinders'
+    equations of motion batched over 1e4 states 27 %, a gradient through `simulate`
+    22 %, one trajectory 5 %, a batch of 1,000 trajectories 11 %. Measured on a
+    2-core CPU (`benchmarks/code_generator.py`, fresh processes, medians). Only the
+    CPU is affected (the flag is XLA:CPU's).
 
     Call it at the top of a script or notebook, before the first computation: XLA
     reads its flags once, when JAX starts its backend (importing `jax` and
