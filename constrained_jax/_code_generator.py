@@ -70,9 +70,9 @@ def use_fast_compilation() -> bool:
     (`--xla-defaults` to keep XLA's defaults).
 
     It appends `--xla_cpu_use_fusion_emitters=false` to the environment variable
-    `XLA_FLAGS`, so processes started from this one (`constrained_jax.sweep`'s
-    workers) inherit it, and JAX's persistent compilation cache keys its entries by
-    it.
+    `XLA_FLAGS`, so processes started from this one inherit it (the processes of a
+    multi-process `constrained_jax.sweep` are started by the user: call it in each),
+    and JAX's persistent compilation cache keys its entries by it.
 
     **Returns:** `True` when the older code generator will be used: the flag is set
     (now or already by the user). `False`, with a warning, where it is not set: the
