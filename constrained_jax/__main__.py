@@ -26,8 +26,8 @@ Compiled programs are kept in JAX's persistent compilation cache
 `--no-compilation-cache` (or `CONSTRAINED_JAX_COMPILATION_CACHE=0`) turns it off.
 Programs are compiled with XLA:CPU's older code generator
 (`constrained_jax.use_fast_compilation`: about 2x faster to compile, the same results
-to round-off; the first run of the tour takes about 55 s instead of 80 s on 2 cores);
-`--xla-defaults` keeps XLA's default one.
+to round-off, programs up to 27 % slower to run; a first run of the tour took 24-27 s
+instead of 36-41 s on 2 cores); `--xla-defaults` keeps XLA's default one.
 
 Pictures need matplotlib (`pip install "constrained_jax[plot]"`); without it the
 checks still run, and the pictures are skipped with a message saying so.

@@ -237,8 +237,7 @@ def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
 
 def test_the_older_code_generator_by_default():
     """A fresh `constrained-jax` process compiles with XLA:CPU's older code generator
-    (`cjax.use_fast_compilation`) and says so; `--xla-defaults` keeps XLA's default
-    (the flag is then never set: `use_fast_compilation` is not called)."""
+    (`cjax.use_fast_compilation`: the flag in its `XLA_FLAGS`) and says so."""
     run = run_python(
         "import sys; from constrained_jax.__main__ import main; "
         "code = main(['scene', 'cylinder_volume', '--no-plots', "
@@ -257,6 +256,8 @@ def test_the_older_code_generator_by_default():
 
 
 def test_xla_defaults_switch(monkeypatch):
+    """`--xla-defaults` never calls `use_fast_compilation`, and says which code
+    generator compiles."""
     from constrained_jax import _code_generator as module
 
     def fail():

@@ -1,8 +1,8 @@
 """`use_fast_compilation`: XLA:CPU's older code generator, opted into before the
 first computation, never against the user's own `XLA_FLAGS`, refused when too late.
 
-Its effect on compile and run time is measured in `benchmarks/compile_time.py
---fast-compilation` (not in timed tests)."""
+Its effect on compile and run time is measured in `benchmarks/code_generator.py` and
+`benchmarks/compile_time.py --fast-compilation` (not in timed tests)."""
 
 import importlib.metadata
 import os
