@@ -71,16 +71,41 @@ def off_constraints(system, q, qd, t, args, tol) -> Bool[Array, ""]:
 
 
 def _push(fn, primals, tangents: list, unroll: bool = True):
-    """`(fn(*primals), [jvp of fn along each tangent])`: one linearisation, then the
-    linear map applied to each tangent (unrolled when few, else vmapped)."""
-    if unroll and len(tangents) * primals[0].shape[0] <= _UNROLL:
-        out, linear = jax.linearize(fn, *primals)
-        return out, [linear(*tangent) for tangent in tangents]
-    stacked = [jnp.stack(parts) for parts in zip(*tangents, strict=True)]
-    along = lambda *tangent: jax.jvp(fn, primals, tangent)
-    out, d_out = jax.vmap(along, out_axes=(None, 0))(*stacked)
-    take = lambda i: jax.tree_util.tree_map(lambda x: x[i], d_out)
-    return out, [take(i) for i in range(len(tangents))]
+    """`(fn(*primals), [jvp of fn along each tangent])`: one linearisation per set of
+    perturbed arguments, then the linear map applied to each tangent (unrolled when
+    few, else vmapped).
+
+    A tangent's entry `None` is a symbolic zero: that argument is closed over, not
+    linearised, so no product with a zero tangent is traced (XLA keeps `0 * x`,
+    which IEEE arithmetic does not make `0`). The primal computations that the
+    linearisations repeat are identical, and XLA merges them."""
+    groups: dict = {}
+    for i, tangent in enumerate(tangents):
+        mask = tuple(x is not None for x in tangent)
+        groups.setdefault(mask, []).append(i)
+    out = None
+    d_out: list = [None] * len(tangents)
+    for mask, members in groups.items():
+        def restricted(*live, mask=mask):
+            it = iter(live)
+            full = [next(it) if m else p for m, p in zip(mask, primals, strict=True)]
+            return fn(*full)
+
+        live = tuple(p for m, p in zip(mask, primals, strict=True) if m)
+        live_tangents = [
+            [x for x in tangents[i] if x is not None] for i in members
+        ]
+        if unroll and len(tangents) * primals[0].shape[0] <= _UNROLL:
+            out, linear = jax.linearize(restricted, *live)
+            for i, tangent in zip(members, live_tangents, strict=True):
+                d_out[i] = linear(*tangent)
+            continue
+        stacked = [jnp.stack(parts) for parts in zip(*live_tangents, strict=True)]
+        along = lambda *tangent, f=restricted, x=live: jax.jvp(f, x, tangent)
+        out, d_group = jax.vmap(along, out_axes=(None, 0))(*stacked)
+        for j, i in enumerate(members):
+            d_out[i] = jax.tree_util.tree_map(lambda x: x[j], d_group)
+    return out, d_out
 
 
 def _seeds(pattern: np.ndarray, dtype):
@@ -100,8 +125,13 @@ def _decompress(
     """The matrix from its compressed products `compressed[c] = sum over the columns
     j of colour c of column j`: dense when `pattern` is, else a `SparseMatrix`."""
     if pattern.all():
-        # Every column has its own colour (colours == arange): the Jacobian itself.
-        return compressed[np.argsort(colours)].T
+        # Every column has its own colour: the Jacobian itself, its rows in the
+        # order of the columns. Static indices, not a gather, which XLA:CPU would
+        # materialise as a separate pass over a batch.
+        order = np.argsort(colours)
+        if np.array_equal(order, np.arange(order.shape[0])):
+            return compressed.T
+        return jnp.stack([compressed[int(c)] for c in order]).T
     rows, cols = np.nonzero(pattern)
     if unroll and len(rows) <= _UNROLL:
         # Static slices (fused under vmap) rather than a gather.
@@ -362,11 +392,10 @@ class LagrangianSystem(eqx.Module):
         def gradient(q_, qd_, t_):
             return jax.grad(self.lagrangian, argnums=(0, 1))(q_, qd_, t_, args)
 
-        zero, zero_t = jnp.zeros((n,), dtype), jnp.zeros((), dtype)
-        tangents = [(zero, jnp.asarray(seed, dtype), zero_t) for seed in seeds]
-        tangents.append((qd, zero, jnp.ones((), dtype)))
+        tangents = [(None, jnp.asarray(seed, dtype), None) for seed in seeds]
+        tangents.append((qd, None, jnp.ones((), dtype)))
         if checked:
-            tangents.append((zero, jnp.asarray(probe_vector(n), dtype), zero_t))
+            tangents.append((None, jnp.asarray(probe_vector(n), dtype), None))
         unroll = self.saddle_point_solver.unrolled(n, structure.jac.shape[0])
         (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents, unroll)
         # The columns of M stacked apart from the other directions: under `jax.vmap`
