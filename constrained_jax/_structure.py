@@ -11,7 +11,10 @@ typed PRNG keys (`jax.random.key`; a raw `uint32` key is an integer array, below
 A pattern found at random states can still miss an entry that is nonzero at the actual
 state (a `jnp.where` branch, a switch in `t` or in an integer parameter): the
 structured evaluation in `LagrangianSystem` checks `M v` and `A v` along a fixed probe
-`v` at run time and refuses the solve on a mismatch. Detection itself never fails: if
+`v` at run time and refuses the solve on a mismatch. Where the traced program proves
+the pattern (`constrained_jax._sparsity`: no data flow from `qdot_j` to `p_i`, from
+`q_j` to a holonomic `G_i`; an exact zero in a Pfaffian `g`), no state can fill
+another entry, and that check is left out. Detection itself never fails: if
 anything goes wrong (the Lagrangian closes over traced values, raises, integer or
 boolean parameters are traced) the pattern is dense, which is always right.
 
@@ -28,6 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._constraints import Holonomic, Pfaffian, Unilateral
+from ._sparsity import dependency_pattern, nonzero_pattern
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Structure:
@@ -39,12 +45,17 @@ class Structure:
     - `jac`: boolean `(k, n)` pattern of `A`.
     - `constant_rows`: boolean `(k,)`, the rows of `A` found constant in `q` and `t`.
     - `detected`: `False` when detection gave up (then the patterns are dense).
+    - `mass_proven`, `jac_proven`: whether the program itself shows that `M`, `A`
+      have no entry outside `mass`, `jac` (see `constrained_jax._sparsity`); then
+      the run-time check of that pattern could never fire, and is left out.
     """
 
     mass: np.ndarray
     jac: np.ndarray
     constant_rows: np.ndarray
     detected: bool
+    mass_proven: bool = False
+    jac_proven: bool = False
 
     @property
     def mass_is_dense(self) -> bool:
@@ -287,4 +298,60 @@ def _evaluate(system, dtype, args, n, k) -> Structure:
             jac = jac | _nonzero(jac_r)
             constant = constant & ~np.any(_nonzero(djac_r), axis=1)
     mass = np.asarray(mass | mass.T, bool)
-    return Structure(mass, np.asarray(jac, bool), np.asarray(constant, bool), True)
+    jac = np.asarray(jac, bool)
+    mass_proven, jac_proven = _proofs(system, treedef, kinds, draws[0], mass, jac)
+    return Structure(
+        mass, jac, np.asarray(constant, bool), True, mass_proven, jac_proven
+    )
+
+
+def _proofs(system, treedef, kinds, draw, mass, jac) -> tuple[bool, bool]:
+    """Whether the traced program bounds the patterns of `M` and `A` by the
+    sampled `mass` and `jac` (then they are equal): the momenta's dependence on
+    `qdot`, each holonomic `G`'s on `q`, the exact zeros of each Pfaffian `g`."""
+    q_r, qd_r, t_r, dynamic, _, _ = draw
+
+    def args_of(dynamic_):
+        dynamic_ = iter(dynamic_)
+        return jax.tree_util.tree_unflatten(
+            treedef, [next(dynamic_) if leaf is _DYNAMIC else leaf for leaf in kinds]
+        )
+
+    proven = dependency_pattern(
+        lambda qd_, q_, t_, d_: system.momentum(q_, qd_, t_, args_of(d_)),
+        (qd_r, q_r, t_r, dynamic),
+        0,
+    )
+    mass_proven = proven is not None and not np.any(proven & ~mass)
+    rows = [_rows_pattern(c, q_r, t_r, dynamic, args_of) for c in system.constraints]
+    jac_proven = all(r is not None for r in rows)
+    if jac_proven and rows:
+        proven = np.concatenate(rows)
+        jac_proven = proven.shape == jac.shape and not np.any(proven & ~jac)
+    return bool(mass_proven), bool(jac_proven)
+
+
+def _rows_pattern(constraint, q_r, t_r, dynamic, args_of):
+    """The proven pattern of a constraint's rows of `A` (`None`: not proven). Only
+    the library's own constraint types: their products at run time are those of the
+    functions analysed here."""
+    kind = type(constraint)
+    if kind is Unilateral:
+        rows = [
+            _rows_pattern(c, q_r, t_r, dynamic, args_of) for c in constraint.constraints
+        ]
+        if any(r is None for r in rows):
+            return None
+        return np.concatenate(rows) if rows else None
+    if kind is Holonomic:
+        return dependency_pattern(
+            lambda q_, t_, d_: constraint.position_residual(q_, t_, args_of(d_)),
+            (q_r, t_r, dynamic),
+            0,
+        )
+    if kind is Pfaffian:
+        return nonzero_pattern(
+            lambda q_, t_, d_: constraint.velocity_form(q_, t_, args_of(d_))[0],
+            (q_r, t_r, dynamic),
+        )
+    return None

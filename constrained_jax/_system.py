@@ -385,7 +385,7 @@ class LagrangianSystem(eqx.Module):
         `(qdot, 0, 1)` (the terms `dp/dq qdot + dp/dt` of `c`) and, for a sparse
         pattern, `(0, probe, 0)`, all in one traced pass."""
         n, dtype = q.shape[0], q.dtype
-        checked = not structure.mass_is_dense
+        checked = not (structure.mass_is_dense or structure.mass_proven)
         seeds, colours = _seeds(structure.mass, dtype)
         num = seeds.shape[0]
 
@@ -421,7 +421,7 @@ class LagrangianSystem(eqx.Module):
         mismatch = jnp.array(False)
         if k == 0:
             return jnp.zeros((0, n), dtype), jnp.zeros((0,), dtype), mismatch
-        checked = not structure.jac_is_dense
+        checked = not (structure.jac_is_dense or structure.jac_proven)
         seeds, colours = _seeds(structure.jac, dtype)
         num = seeds.shape[0]
         directions = np.asarray(seeds)
