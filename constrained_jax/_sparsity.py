@@ -27,15 +27,12 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jax.extend.core import Literal
 import numpy as np
+from jax.extend.core import Literal
 
 
 # Beyond this many booleans in one dependency array the analysis gives up.
 _MAX_ENTRIES = 4_000_000
-
-
-_OPAQUE_SEEN: set = set()
 
 
 class _GiveUp(Exception):
@@ -121,7 +118,9 @@ _OTHER_ELEMENTWISE = frozenset(
     }
 )
 
-_CALLS = ("jaxpr", "call_jaxpr")
+# Nested programs whose inputs and outputs are those of the equation (`jax.jit`,
+# `jax.checkpoint`): followed inside. Loops, `lax.cond` and custom derivatives are not.
+_CALLS = frozenset({"jit", "pjit", "closed_call", "core_call", "remat2", "checkpoint"})
 
 
 class _State:
@@ -220,13 +219,12 @@ def _eqn_states(eqn, in_states, n):
     name = eqn.primitive.name
     params = eqn.params
     out_avals = [v.aval for v in eqn.outvars]
-    for key in _CALLS:
-        sub = params.get(key)
-        if sub is not None and name not in ("custom_jvp_call", "custom_vjp_call"):
-            closed = sub if hasattr(sub, "consts") else None
-            jaxpr = sub.jaxpr if hasattr(sub, "jaxpr") else sub
-            consts = closed.consts if closed is not None else []
-            return _interpret(jaxpr, consts, in_states, n)
+    if name in _CALLS:
+        sub = params.get("jaxpr", params.get("call_jaxpr"))
+        closed = sub if hasattr(sub, "consts") else None
+        jaxpr = sub.jaxpr if hasattr(sub, "jaxpr") else sub
+        consts = closed.consts if closed is not None else []
+        return _interpret(jaxpr, consts, in_states, n)
     if len(out_avals) != 1:
         return _opaque(in_states, out_avals, n)
     aval = out_avals[0]
@@ -286,7 +284,6 @@ def _eqn_states(eqn, in_states, n):
         else:
             nz = np.ones(shape, bool)
         return finish(nz, dep)
-    _OPAQUE_SEEN.add(name)
     return _opaque(in_states, out_avals, n)
 
 

@@ -86,15 +86,14 @@ def _push(fn, primals, tangents: list, unroll: bool = True):
     out = None
     d_out: list = [None] * len(tangents)
     for mask, members in groups.items():
+
         def restricted(*live, mask=mask):
             it = iter(live)
             full = [next(it) if m else p for m, p in zip(mask, primals, strict=True)]
             return fn(*full)
 
         live = tuple(p for m, p in zip(mask, primals, strict=True) if m)
-        live_tangents = [
-            [x for x in tangents[i] if x is not None] for i in members
-        ]
+        live_tangents = [[x for x in tangents[i] if x is not None] for i in members]
         if unroll and len(tangents) * primals[0].shape[0] <= _UNROLL:
             out, linear = jax.linearize(restricted, *live)
             for i, tangent in zip(members, live_tangents, strict=True):
@@ -104,7 +103,7 @@ def _push(fn, primals, tangents: list, unroll: bool = True):
         along = lambda *tangent, f=restricted, x=live: jax.jvp(f, x, tangent)
         out, d_group = jax.vmap(along, out_axes=(None, 0))(*stacked)
         for j, i in enumerate(members):
-            d_out[i] = jax.tree_util.tree_map(lambda x: x[j], d_group)
+            d_out[i] = jax.tree_util.tree_map(lambda x, j=j: x[j], d_group)
     return out, d_out
 
 
