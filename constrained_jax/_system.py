@@ -204,10 +204,13 @@ class LagrangianSystem(eqx.Module):
     `RangeSpaceLDL()`), the sparsity patterns of `M` and `A` are detected once at
     trace time by evaluating them at random states, and `M` and `A` are then built
     from one forward-mode product per colour of a column colouring (a diagonal `M`
-    costs one product, not `n`). A fixed probe checks the patterns at every state:
-    if an entry the detection missed is nonzero (a coupling switched on by
-    `jnp.where` or by a parameter value), the solve is refused (`accelerations`
-    raises, `solve_accelerations` reports `singular`), never wrong.
+    costs one product, not `n`). A pattern is proven when the traced program bounds
+    it (no data flow from `qdot_j` to the momentum `p_i`, nor from `q_j` to a
+    holonomic `G_i`; an exact zero in a Pfaffian `g`): no state can fill another
+    entry. Otherwise a fixed probe checks it at every state: if an entry the
+    detection missed is nonzero (a coupling switched on by `jnp.where` or by a
+    parameter value), the solve is refused (`accelerations` raises,
+    `solve_accelerations` reports `singular`), never wrong.
 
     Coordinates `q` are arrays of shape `(n,)`; `t` is a scalar.
     """
@@ -368,10 +371,12 @@ class LagrangianSystem(eqx.Module):
         forward-mode product per colour (a diagonal `M` needs one, not `n`), all
         pushed through one traced copy of the gradient of the Lagrangian (and of each
         constraint) together with the directions that give the bias terms. With a
-        sparse pattern one more direction, a fixed probe `v`, checks the pattern at
-        the actual state: `mismatch` is true when `M v` or `A v` differs from the
-        product of the sparse matrix with `v` beyond round-off (an entry the
-        detection at random states missed); the solve must then be refused.
+        sparse pattern that the traced program does not prove (see
+        `constrained_jax._sparsity`) one more direction, a fixed probe `v`, checks
+        the pattern at the actual state: `mismatch` is true when `M v` or `A v`
+        differs from the product of the sparse matrix with `v` beyond round-off (an
+        entry the detection at random states missed); the solve must then be
+        refused.
         """
         structure = self.structure(q, t, args)
         mass, rhs, mismatch_m = self._lagrangian_pass(q, qd, t, args, structure)
