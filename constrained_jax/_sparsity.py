@@ -143,8 +143,9 @@ def _check_size(shape, n):
         raise _GiveUp
 
 
-def _opaque(in_states, out_avals, n):
+def _opaque(in_states, out_avals, n, ctx):
     """Every output entry possibly nonzero and depending on every input entry."""
+    ctx["exact"] = False
     dep = np.zeros((n,), bool)
     for s in in_states:
         dep = dep | s.dep.reshape(s.nz.size, n).any(axis=0)
@@ -215,7 +216,7 @@ def _index_map(name, params, in_shapes, out_shape):
     return None
 
 
-def _eqn_states(eqn, in_states, n):
+def _eqn_states(eqn, in_states, n, ctx):
     name = eqn.primitive.name
     params = eqn.params
     out_avals = [v.aval for v in eqn.outvars]
@@ -224,9 +225,9 @@ def _eqn_states(eqn, in_states, n):
         closed = sub if hasattr(sub, "consts") else None
         jaxpr = sub.jaxpr if hasattr(sub, "jaxpr") else sub
         consts = closed.consts if closed is not None else []
-        return _interpret(jaxpr, consts, in_states, n)
+        return _interpret(jaxpr, consts, in_states, n, ctx)
     if len(out_avals) != 1:
-        return _opaque(in_states, out_avals, n)
+        return _opaque(in_states, out_avals, n, ctx)
     aval = out_avals[0]
     shape = tuple(aval.shape)
     _check_size(shape, n)
@@ -262,6 +263,13 @@ def _eqn_states(eqn, in_states, n):
             nz = np.ones(shape, bool)
         dep = src.dep.any(axis=axes) if axes else src.dep
         return finish(nz, dep)
+    if name in ("dot_general", "mul", "div"):
+        # A product with an exact zero is zero (but for `0 * inf`) and carries no
+        # derivative, which the rules here do not exploit: not exact.
+        if any(not s.nz.all() for s in in_states) and any(
+            s.dep.any() for s in in_states
+        ):
+            ctx["exact"] = False
     if name == "dot_general":
         return finish(*_dot_general(params, in_states, shape, n))
     elementwise = (
@@ -284,7 +292,7 @@ def _eqn_states(eqn, in_states, n):
         else:
             nz = np.ones(shape, bool)
         return finish(nz, dep)
-    return _opaque(in_states, out_avals, n)
+    return _opaque(in_states, out_avals, n, ctx)
 
 
 def _dot_general(params, in_states, shape, n):
@@ -320,7 +328,7 @@ def _literal_state(value, n):
     return _State(np.asarray(nz, bool), np.zeros((*value.shape, n), bool))
 
 
-def _interpret(jaxpr, consts, in_states, n):
+def _interpret(jaxpr, consts, in_states, n, ctx):
     env = {}
 
     def read(v):
@@ -333,15 +341,18 @@ def _interpret(jaxpr, consts, in_states, n):
     for v, s in zip(jaxpr.invars, in_states, strict=True):
         env[v] = s
     for eqn in jaxpr.eqns:
-        outs = _eqn_states(eqn, [read(v) for v in eqn.invars], n)
+        outs = _eqn_states(eqn, [read(v) for v in eqn.invars], n, ctx)
         for v, s in zip(eqn.outvars, outs, strict=True):
             env[v] = s
     return [read(v) for v in jaxpr.outvars]
 
 
 def _analyse(fn, example_args, wrt):
-    """The `_State` of each output leaf of `fn(*example_args)`, following the
-    entries of `example_args[wrt]` (`None`: no input followed)."""
+    """`(states, exact)`: the `_State` of each output leaf of `fn(*example_args)`,
+    following the entries of `example_args[wrt]` (`None`: no input followed), and
+    whether every rule applied was exact (no opaque operation, no product with an
+    exact zero): then the patterns are the program's structural patterns, not only
+    bounds of them."""
     closed = jax.make_jaxpr(fn)(*example_args)
     flat_in = [jax.tree_util.tree_leaves(a) for a in example_args]
     n = int(np.size(example_args[wrt])) if wrt is not None else 0
@@ -355,26 +366,32 @@ def _analyse(fn, example_args, wrt):
             else:
                 dep = np.zeros((*shape, n), bool)
             states.append(_State(np.ones(shape, bool), dep))
-    return _interpret(closed.jaxpr, closed.consts, states, n)
+    ctx = {"exact": True}
+    return _interpret(closed.jaxpr, closed.consts, states, n, ctx), ctx["exact"]
 
 
-def dependency_pattern(fn, example_args, wrt: int):
+def dependency_pattern(fn, example_args, wrt: int, exact: bool = False):
     """Boolean `(m, n)`: whether output entry `i` of `fn` (one array, `m` entries)
     may depend on entry `j` of `example_args[wrt]` (`n` entries); `None` when the
-    analysis gives up."""
+    analysis gives up, or, with `exact`, when a rule only bounded the pattern."""
     try:
-        (out,) = _analyse(fn, example_args, wrt)
+        (out,), is_exact = _analyse(fn, example_args, wrt)
+        if exact and not is_exact:
+            return None
         n = int(np.size(example_args[wrt]))
         return np.asarray(out.dep.reshape(out.nz.size, n), bool)
     except Exception:
         return None
 
 
-def nonzero_pattern(fn, example_args):
+def nonzero_pattern(fn, example_args, exact: bool = False):
     """Boolean, the shape of `fn`'s output (one array): whether each entry may be
-    nonzero; `None` when the analysis gives up."""
+    nonzero; `None` when the analysis gives up, or, with `exact`, when a rule only
+    bounded the pattern."""
     try:
-        (out,) = _analyse(fn, example_args, None)
+        (out,), is_exact = _analyse(fn, example_args, None)
+        if exact and not is_exact:
+            return None
         return np.asarray(out.nz, bool)
     except Exception:
         return None

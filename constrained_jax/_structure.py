@@ -2,21 +2,26 @@
 
 The sparsity patterns of the mass matrix `M = d^2 L / dqdot^2` (n x n) and of the
 constraint Jacobian `A` (k x n), and which rows of `A` are constant in `q` and `t`, are
-found by evaluating them concretely (outside the traced program) at two random states
-and taking the union of the nonzeros (NaN and inf count as nonzero). Float parameters
-in `args` are drawn at random too, so that a parameter that happens to be zero (a
-massless coordinate, `I = 0`) does not hide an entry that another value fills; so are
-typed PRNG keys (`jax.random.key`; a raw `uint32` key is an integer array, below).
+first read from the traced programs (`constrained_jax._sparsity`): which momentum
+`p_i` has data flow from which velocity `qdot_j`, which holonomic `G_i` from which
+`q_j`, which entries of a Pfaffian `g` are exact zeros. Where every operation met has
+an exact rule (all the scenes), these are the structural patterns: proven, no state can
+fill another entry, and nothing is evaluated.
 
-A pattern found at random states can still miss an entry that is nonzero at the actual
-state (a `jnp.where` branch, a switch in `t` or in an integer parameter): the
-structured evaluation in `LagrangianSystem` checks `M v` and `A v` along a fixed probe
-`v` at run time and refuses the solve on a mismatch. Where the traced program proves
-the pattern (`constrained_jax._sparsity`: no data flow from `qdot_j` to `p_i`, from
-`q_j` to a holonomic `G_i`; an exact zero in a Pfaffian `g`), no state can fill
-another entry, and that check is left out. Detection itself never fails: if
-anything goes wrong (the Lagrangian closes over traced values, raises, integer or
-boolean parameters are traced) the pattern is dense, which is always right.
+Otherwise (an operation the reading treats as opaque: `lax.cond`, loops, gathers,
+custom derivatives; a product with an exact zero) they are found by evaluating `M`
+and `A` concretely (outside the traced program) at two random states and taking the
+union of the nonzeros (NaN and inf count as nonzero). Float parameters in `args` are
+drawn at random too, so that a parameter that happens to be zero (a massless
+coordinate, `I = 0`) does not hide an entry that another value fills; so are typed
+PRNG keys (`jax.random.key`; a raw `uint32` key is an integer array, below). Such a
+pattern can miss an entry that is nonzero at the actual state (a switch in `t` or in
+a parameter): unless the reading's upper bound lies inside it (then it is proven all
+the same), the structured evaluation in `LagrangianSystem` checks `M v` and `A v`
+along a fixed probe `v` at run time and refuses the solve on a mismatch. Detection
+itself never fails: if anything goes wrong (the Lagrangian closes over traced values,
+raises, integer or boolean parameters are traced) the pattern is dense, which is
+always right.
 
 Results are cached per system and per shapes and dtypes of `q` and `args`, so the
 several traces of one vector field (diffrax traces it more than once) detect once.
@@ -286,6 +291,9 @@ def _evaluate(system, dtype, args, n, k) -> Structure:
         dynamic = [leaf for leaf in leaves_r if _is_dynamic(leaf)]
         draws.append((q_r, qd_r, t_r, dynamic, dq, dt))
         kinds = [_DYNAMIC if _is_dynamic(leaf) else leaf for leaf in leaves_r]
+    static = _read_structure(system, treedef, kinds, draws[0], n, k)
+    if static is not None:
+        return static
     program = _draw_program(system, treedef, kinds, bool(k))
     compiled = program.lower(*draws[0]).compile(compiler_options=_DRAW_OPTIONS)
     mass = np.zeros((n, n), bool)
@@ -305,18 +313,60 @@ def _evaluate(system, dtype, args, n, k) -> Structure:
     )
 
 
+def _read_structure(system, treedef, kinds, draw, n, k) -> Structure | None:
+    """The structure read from the traced programs alone, without evaluating
+    anything, where every rule of `constrained_jax._sparsity` was exact (the
+    patterns are then the structural ones, proven); `None` otherwise (an operation
+    it treats as opaque, a product with an exact zero: the random states decide,
+    and a pattern not proven is checked at run time)."""
+    q_r, qd_r, t_r, dynamic, _, _ = draw
+    args_of = functools.partial(_args_of, treedef, kinds)
+    mass = dependency_pattern(
+        lambda qd_, q_, t_, d_: system.momentum(q_, qd_, t_, args_of(d_)),
+        (qd_r, q_r, t_r, dynamic),
+        0,
+        exact=True,
+    )
+    if mass is None or mass.shape != (n, n):
+        return None
+    rows = [
+        _rows_pattern(c, q_r, t_r, dynamic, args_of, exact=True)
+        for c in system.constraints
+    ]
+    if any(r is None for r in rows):
+        return None
+    jac = np.concatenate(rows) if rows else np.zeros((0, n), bool)
+    if jac.shape != (k, n):
+        return None
+    # Rows of `A` with no data flow from `q` or `t` (conservative: a row the
+    # reading cannot clear counts as varying).
+    varying = np.zeros((k,), bool)
+    if k:
+        jac_of = lambda q_, t_, d_: system.constraint_jacobian(q_, t_, args_of(d_))
+        for wrt in (0, 1):
+            dep = dependency_pattern(jac_of, (q_r, t_r, dynamic), wrt)
+            if dep is None:
+                varying[:] = True
+                break
+            varying |= dep.reshape(k, -1).any(axis=1)
+    mass = np.asarray(mass | mass.T, bool)
+    return Structure(mass, np.asarray(jac, bool), ~varying, True, True, True)
+
+
+def _args_of(treedef, kinds, dynamic):
+    """`args` from its dynamic leaves (the others as in `kinds`)."""
+    dynamic = iter(dynamic)
+    return jax.tree_util.tree_unflatten(
+        treedef, [next(dynamic) if leaf is _DYNAMIC else leaf for leaf in kinds]
+    )
+
+
 def _proofs(system, treedef, kinds, draw, mass, jac) -> tuple[bool, bool]:
     """Whether the traced program bounds the patterns of `M` and `A` by the
     sampled `mass` and `jac` (then they are equal): the momenta's dependence on
     `qdot`, each holonomic `G`'s on `q`, the exact zeros of each Pfaffian `g`."""
     q_r, qd_r, t_r, dynamic, _, _ = draw
-
-    def args_of(dynamic_):
-        dynamic_ = iter(dynamic_)
-        return jax.tree_util.tree_unflatten(
-            treedef, [next(dynamic_) if leaf is _DYNAMIC else leaf for leaf in kinds]
-        )
-
+    args_of = functools.partial(_args_of, treedef, kinds)
     proven = dependency_pattern(
         lambda qd_, q_, t_, d_: system.momentum(q_, qd_, t_, args_of(d_)),
         (qd_r, q_r, t_r, dynamic),
@@ -331,14 +381,15 @@ def _proofs(system, treedef, kinds, draw, mass, jac) -> tuple[bool, bool]:
     return bool(mass_proven), bool(jac_proven)
 
 
-def _rows_pattern(constraint, q_r, t_r, dynamic, args_of):
+def _rows_pattern(constraint, q_r, t_r, dynamic, args_of, exact=False):
     """The proven pattern of a constraint's rows of `A` (`None`: not proven). Only
     the library's own constraint types: their products at run time are those of the
     functions analysed here."""
     kind = type(constraint)
     if kind is Unilateral:
         rows = [
-            _rows_pattern(c, q_r, t_r, dynamic, args_of) for c in constraint.constraints
+            _rows_pattern(c, q_r, t_r, dynamic, args_of, exact)
+            for c in constraint.constraints
         ]
         if any(r is None for r in rows):
             return None
@@ -348,10 +399,12 @@ def _rows_pattern(constraint, q_r, t_r, dynamic, args_of):
             lambda q_, t_, d_: constraint.position_residual(q_, t_, args_of(d_)),
             (q_r, t_r, dynamic),
             0,
+            exact,
         )
     if kind is Pfaffian:
         return nonzero_pattern(
             lambda q_, t_, d_: constraint.velocity_form(q_, t_, args_of(d_))[0],
             (q_r, t_r, dynamic),
+            exact,
         )
     return None

@@ -201,16 +201,17 @@ class LagrangianSystem(eqx.Module):
         also for indefinite `M`), or `RangeSpaceLDL(sparse=False)` (dense).
 
     **Structure.** With a solver that takes sparse matrices (the default,
-    `RangeSpaceLDL()`), the sparsity patterns of `M` and `A` are detected once at
-    trace time by evaluating them at random states, and `M` and `A` are then built
-    from one forward-mode product per colour of a column colouring (a diagonal `M`
-    costs one product, not `n`). A pattern is proven when the traced program bounds
-    it (no data flow from `qdot_j` to the momentum `p_i`, nor from `q_j` to a
-    holonomic `G_i`; an exact zero in a Pfaffian `g`): no state can fill another
-    entry. Otherwise a fixed probe checks it at every state: if an entry the
-    detection missed is nonzero (a coupling switched on by `jnp.where` or by a
-    parameter value), the solve is refused (`accelerations` raises,
-    `solve_accelerations` reports `singular`), never wrong.
+    `RangeSpaceLDL()`), the sparsity patterns of `M` and `A` are found once at
+    trace time, and `M` and `A` are then built from one forward-mode product per
+    colour of a column colouring (a diagonal `M` costs one product, not `n`). They
+    are read from the traced program (data flow from `qdot_j` to the momentum `p_i`
+    and from `q_j` to a holonomic `G_i`, exact zeros of a Pfaffian `g`): proven, no
+    state can fill another entry. Where that reading is only a bound (`lax.cond`,
+    loops, gathers in the Lagrangian), they are detected at random states, and a
+    fixed probe checks a pattern the bound does not prove at every state: if an
+    entry the detection missed is nonzero (a coupling switched on by a parameter
+    value), the solve is refused (`accelerations` raises, `solve_accelerations`
+    reports `singular`), never wrong.
 
     Coordinates `q` are arrays of shape `(n,)`; `t` is a scalar.
     """

@@ -4,6 +4,7 @@ the scenes; the run-time pattern check left out only where proven, with answers 
 for bit those of the checked program; a pattern the program does not prove keeps
 its check and its refusal."""
 
+import collections
 import dataclasses
 
 import jax
@@ -93,6 +94,17 @@ def test_nonzero_pattern_counts_only_exact_zeros():
     np.testing.assert_array_equal(pattern, [[1, 0, 0, 0], [1, 1, 1, 1]])
 
 
+def test_exact_reading_skips_the_random_states():
+    """Where every rule is exact (the scenes), the structure comes from the program
+    alone; a product with an exact zero or an opaque operation only bounds it."""
+    x = jnp.ones(3)
+    assert dependency_pattern(lambda x: x[1:] * x[:-1], (x,), 0, exact=True) is not None
+    assert dependency_pattern(lambda x: jnp.cumsum(x), (x,), 0, exact=True) is None
+    masked = lambda x: jnp.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]) @ x
+    assert dependency_pattern(masked, (x,), 0, exact=True) is None
+    assert dependency_pattern(masked, (x,), 0).all()  # the bound: dense
+
+
 @pytest.mark.parametrize(
     "scene, system, n",
     [
@@ -111,11 +123,14 @@ def test_scene_patterns_are_proven(scene, system, n):
 
 
 def test_switched_coupling_is_not_proven_and_keeps_its_check():
-    """`jnp.where(c > 5, qd0 qd1 / 2, 0)`: random parameters never switch it on, and
-    the data flow from `qd1` to `p0` is there, so the pattern is not proven."""
+    """`lax.cond(c > 5, qd0 qd1 / 2, 0)`: opaque to the reading, so the random
+    states decide, and random parameters never switch it on; the reading's bound has
+    the entry, so the pattern is not proven and the check refuses the solve."""
 
     def lagrangian(q, qd, t, args):
-        coupling = jnp.where(args["c"] > 5.0, 0.5 * qd[0] * qd[1], 0.0)
+        coupling = jax.lax.cond(
+            args["c"] > 5.0, lambda: 0.5 * qd[0] * qd[1], lambda: 0.0 * qd[0]
+        )
         return 0.5 * jnp.dot(qd, qd) + coupling - 9.81 * q[1]
 
     system = cjax.LagrangianSystem(
@@ -169,3 +184,23 @@ def test_proofs_leave_the_answers_bit_for_bit(monkeypatch):
         for x, y in zip(a, b, strict=True):
             np.testing.assert_array_equal(x, y)
     assert size_proven < size_checked
+
+
+@pytest.mark.parametrize("scene", ["two_cylinders", "pendulum", "chain"])
+def test_read_structure_equals_the_sampled_one(scene, monkeypatch):
+    """The structure read from the program against the one found at random states
+    (and proven by the bound) for the same system: the same patterns and rows."""
+    module = {"two_cylinders": two_cylinders, "pendulum": pendulum, "chain": chain}
+    module = module[scene]
+    system, args = module.system(), module.default_args()
+    n = {"two_cylinders": 3, "pendulum": 2, "chain": 6}[scene]
+    q, t = jnp.ones(n), jnp.asarray(0.0)
+    monkeypatch.setattr(_structure, "_CACHE", collections.OrderedDict())
+    read = system.structure(q, t, args)
+    monkeypatch.setattr(_structure, "_CACHE", collections.OrderedDict())
+    monkeypatch.setattr(_structure, "_read_structure", lambda *a, **k: None)
+    sampled = system.structure(q, t, args)
+    assert sampled.mass_proven and sampled.jac_proven
+    np.testing.assert_array_equal(read.mass, sampled.mass)
+    np.testing.assert_array_equal(read.jac, sampled.jac)
+    np.testing.assert_array_equal(read.constant_rows, sampled.constant_rows)

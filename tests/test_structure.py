@@ -110,10 +110,15 @@ def test_pendulum_matches_tension():
 
 
 def _switched_system():
-    """A coupling `c qd0 qd1` of two masses that is on only for `args["c"] > 5`."""
+    """A coupling `c qd0 qd1` of two masses that is on only for `args["c"] > 5`,
+    behind a `lax.cond`: opaque to the reading of the program
+    (`constrained_jax._sparsity`), so the random states decide the pattern, and they
+    never switch it on."""
 
     def lagrangian(q, qd, t, args):
-        coupling = jnp.where(args["c"] > 5.0, 0.5 * qd[0] * qd[1], 0.0)
+        coupling = jax.lax.cond(
+            args["c"] > 5.0, lambda: 0.5 * qd[0] * qd[1], lambda: 0.0 * qd[0]
+        )
         return 0.5 * jnp.dot(qd, qd) + coupling - 9.81 * q[1] + 0.0 * t
 
     def rod(q, t, args):
@@ -216,6 +221,25 @@ def test_missed_entry_in_simulate_is_refused():
     result, q1 = run(jnp.asarray(1.0))
     assert result == cjax.RESULTS.successful
     np.testing.assert_allclose(jnp.dot(q1, q1), 1.0, atol=1e-6)
+
+
+def test_where_switch_read_from_the_program_is_right():
+    """The same coupling by `jnp.where`: the program shows the data flow from
+    `qd1` to `p0`, so the pattern has the entry (proven, no run-time check) and the
+    solve is right with the coupling on and off."""
+
+    def lagrangian(q, qd, t, args):
+        coupling = jnp.where(args["c"] > 5.0, 0.5 * qd[0] * qd[1], 0.0)
+        return 0.5 * jnp.dot(qd, qd) + coupling - 9.81 * q[1]
+
+    system = cjax.LagrangianSystem(
+        lagrangian, cjax.Holonomic(lambda q, t, args: jnp.dot(q, q) - 1.0)
+    )
+    q, qd, t = jnp.array([0.6, -0.8]), jnp.array([0.8, 0.6]), jnp.asarray(0.0)
+    structure = system.structure(q, t, {"c": jnp.asarray(10.0)})
+    assert structure.mass[0, 1] and structure.mass_proven
+    for c in (10.0, 1.0):
+        _assert_same(system, q, qd, t, {"c": jnp.asarray(c)})
 
 
 def test_time_switch_seen_by_detection_is_right():
