@@ -1,9 +1,4 @@
-"""Sparsity patterns proven from the program, not sampled.
-
-`constrained_jax._structure` finds the patterns of `M` and `A` by evaluating them at
-random states, which can miss an entry that only some states fill; the equations of
-motion then check the patterns along a probe at run time. This module reads the
-traced program (the jaxpr) instead and bounds the patterns from above:
+"""Sparsity patterns read from the traced program (the jaxpr), not sampled.
 
 - `dependency_pattern(fn, x, ...)`: which outputs of `fn` depend on which entries of
   `x`, by following the data flow of every operation. An output with no path from
@@ -15,12 +10,16 @@ traced program (the jaxpr) instead and bounds the patterns from above:
   by data movement (`broadcast`, `stack`, `pad`, slices, ...) and sums, negations of
   such zeros. A product with zero counts as possibly nonzero (`0 * inf` is NaN).
 
-Both are conservative: an operation without a rule here makes each of its outputs
+Both are upper bounds: an operation without a rule here makes each of its outputs
 depend on every input (and possibly nonzero); nested programs (`jax.jit`,
-`jax.checkpoint`) are followed; control flow (`lax.cond`, loops) and custom
-derivatives are treated as opaque. When the proven pattern lies inside the sampled
-one, the two are equal, and the run-time check can never fire: it is left out.
-Anything unexpected gives `None` (not proven), never an error.
+`jax.checkpoint`) are followed; control flow (`lax.cond`, loops), gathers and custom
+derivatives are opaque. A reading is *exact* when no opaque operation and no product
+with an exact zero (whose derivative the rules keep) was met: the pattern is then
+the program's structural pattern. `constrained_jax._structure` uses an exact reading
+as the pattern (no evaluation at random states), and a bound to prove a pattern
+sampled at random states (bound inside sample: the two are equal, and the run-time
+check of the pattern can never fire). Anything unexpected gives `None`, never an
+error.
 """
 
 import math
