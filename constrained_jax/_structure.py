@@ -319,27 +319,13 @@ def _read_structure(system, treedef, kinds, draw, n, k) -> Structure | None:
     patterns are then the structural ones, proven); `None` otherwise (an operation
     it treats as opaque, a product with an exact zero: the random states decide,
     and a pattern not proven is checked at run time)."""
-    q_r, qd_r, t_r, dynamic, _, _ = draw
-    args_of = functools.partial(_args_of, treedef, kinds)
-    mass = dependency_pattern(
-        lambda qd_, q_, t_, d_: system.momentum(q_, qd_, t_, args_of(d_)),
-        (qd_r, q_r, t_r, dynamic),
-        0,
-        exact=True,
-    )
-    if mass is None or mass.shape != (n, n):
-        return None
-    rows = [
-        _rows_pattern(c, q_r, t_r, dynamic, args_of, exact=True)
-        for c in system.constraints
-    ]
-    if any(r is None for r in rows):
-        return None
-    jac = np.concatenate(rows) if rows else np.zeros((0, n), bool)
-    if jac.shape != (k, n):
+    mass, jac = _reading(system, treedef, kinds, draw, exact=True)
+    if mass is None or jac is None or mass.shape != (n, n) or jac.shape != (k, n):
         return None
     # Rows of `A` with no data flow from `q` or `t` (conservative: a row the
     # reading cannot clear counts as varying).
+    q_r, _, t_r, dynamic, _, _ = draw
+    args_of = functools.partial(_args_of, treedef, kinds)
     varying = np.zeros((k,), bool)
     if k:
         jac_of = lambda q_, t_, d_: system.constraint_jacobian(q_, t_, args_of(d_))
@@ -361,23 +347,42 @@ def _args_of(treedef, kinds, dynamic):
     )
 
 
-def _proofs(system, treedef, kinds, draw, mass, jac) -> tuple[bool, bool]:
-    """Whether the traced program bounds the patterns of `M` and `A` by the
-    sampled `mass` and `jac` (then they are equal): the momenta's dependence on
-    `qdot`, each holonomic `G`'s on `q`, the exact zeros of each Pfaffian `g`."""
+def _reading(system, treedef, kinds, draw, exact: bool):
+    """`(mass, jac)`: the patterns of `M` and `A` read from the traced programs
+    (the momenta's data flow from `qdot`, each holonomic `G`'s from `q`, the exact
+    zeros of each Pfaffian `g`), each `None` where not read (or, with `exact`, only
+    bounded)."""
     q_r, qd_r, t_r, dynamic, _, _ = draw
     args_of = functools.partial(_args_of, treedef, kinds)
-    proven = dependency_pattern(
+    mass = dependency_pattern(
         lambda qd_, q_, t_, d_: system.momentum(q_, qd_, t_, args_of(d_)),
         (qd_r, q_r, t_r, dynamic),
         0,
+        exact,
     )
-    mass_proven = proven is not None and not np.any(proven & ~mass)
-    rows = [_rows_pattern(c, q_r, t_r, dynamic, args_of) for c in system.constraints]
-    jac_proven = all(r is not None for r in rows)
-    if jac_proven and rows:
-        proven = np.concatenate(rows)
-        jac_proven = proven.shape == jac.shape and not np.any(proven & ~jac)
+    rows = [
+        _rows_pattern(c, q_r, t_r, dynamic, args_of, exact) for c in system.constraints
+    ]
+    if any(r is None for r in rows):
+        return mass, None
+    jac = np.concatenate(rows) if rows else np.zeros((0, np.size(q_r)), bool)
+    return mass, jac
+
+
+def _proofs(system, treedef, kinds, draw, mass, jac) -> tuple[bool, bool]:
+    """Whether the traced program bounds the patterns of `M` and `A` by the
+    sampled `mass` and `jac` (then they are equal)."""
+    bound_mass, bound_jac = _reading(system, treedef, kinds, draw, exact=False)
+    mass_proven = (
+        bound_mass is not None
+        and bound_mass.shape == mass.shape
+        and not np.any(bound_mass & ~mass)
+    )
+    jac_proven = (
+        bound_jac is not None
+        and bound_jac.shape == jac.shape
+        and not np.any(bound_jac & ~jac)
+    )
     return bool(mass_proven), bool(jac_proven)
 
 
