@@ -22,10 +22,13 @@ Rows (float64, after compilation, medians; ratios within this run):
    each, alternating).
 
     python benchmarks/targets.py [--out benchmarks/results] [--fast-compilation]
+        [--loop-kernels]
 
 Writes `targets.json` and prints the table for `README.md`. `--fast-compilation`
 measures with XLA:CPU's older code generator (`cjax.use_fast_compilation()`) and
-writes `targets_fast_compilation.json`.
+writes `targets_fast_compilation.json`; `--loop-kernels` with small loops compiled
+into one function (`cjax.use_loop_kernels()`), `targets_loop_kernels.json` (both:
+`targets_fast_compilation_loop_kernels.json`).
 """
 
 import argparse
@@ -211,7 +214,9 @@ def measure(opts) -> list[dict]:
     fresh = {"default": [], "lapack": []}
     for i in range(opts.rounds):
         for name in ("default", "lapack") if i % 2 == 0 else ("lapack", "default"):
-            fresh[name].append(_first_call_elsewhere(name, opts.fast_compilation))
+            fresh[name].append(
+                _first_call_elsewhere(name, opts.fast_compilation, opts.loop_kernels)
+            )
     compile_ratio = statistics.median(fresh["default"]) / statistics.median(
         fresh["lapack"]
     )
@@ -232,6 +237,8 @@ sys.path.insert(0, {folder!r})
 import constrained_jax as cjax
 if {fast}:
     cjax.use_fast_compilation()
+if {loops}:
+    cjax.use_loop_kernels()
 import jax
 jax.config.update("jax_enable_x64", True)
 import chain
@@ -241,13 +248,13 @@ print(json.dumps(r["trace_lower_s"] + r["compile_s"]))
 """
 
 
-def _first_call_elsewhere(name: str, fast: bool) -> float:
+def _first_call_elsewhere(name: str, fast: bool, loops: bool) -> float:
     """Trace + lower + compile of the 4-link chain's trajectory (`chain.trajectory`),
     the first program of a new process, with the default solver or LAPACK's LU."""
     folder = os.path.dirname(os.path.abspath(__file__))
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
-    code = _FIRST_CALL.format(folder=folder, fast=fast, name=name)
+    code = _FIRST_CALL.format(folder=folder, fast=fast, loops=loops, name=name)
     done = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=env
     )
@@ -275,14 +282,24 @@ def main() -> None:
         help="XLA:CPU's older code generator (cjax.use_fast_compilation()); writes "
         "targets_fast_compilation.json",
     )
+    parser.add_argument(
+        "--loop-kernels",
+        action="store_true",
+        help="small loops compiled into one function (cjax.use_loop_kernels()); "
+        "writes targets_loop_kernels.json",
+    )
     opts = parser.parse_args()
     if opts.fast_compilation:
-        import constrained_jax as cjax
-
         assert cjax.use_fast_compilation()
+    if opts.loop_kernels:
+        assert cjax.use_loop_kernels()
     rows = measure(opts)
     os.makedirs(opts.out, exist_ok=True)
-    name = "targets_fast_compilation" if opts.fast_compilation else "targets"
+    name = "targets"
+    if opts.fast_compilation:
+        name += "_fast_compilation"
+    if opts.loop_kernels:
+        name += "_loop_kernels"
     path = os.path.join(opts.out, f"{name}.json")
     with open(path, "w") as f:
         json.dump({"machine": machine_info(), "rows": rows}, f, indent=1,
