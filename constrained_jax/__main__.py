@@ -27,7 +27,9 @@ Compiled programs are kept in JAX's persistent compilation cache
 Programs are compiled with XLA:CPU's older code generator
 (`constrained_jax.use_fast_compilation`: about 2x faster to compile, the same results
 to round-off, programs up to 27 % slower to run; a first run of the tour took 24-27 s
-instead of 36-41 s on 2 cores); `--xla-defaults` keeps XLA's default one.
+instead of 36-41 s on 2 cores), and small loops (a single trajectory) into one
+function each (`constrained_jax.use_loop_kernels`: 2-6x faster single trajectories,
+and faster compilation too); `--xla-defaults` keeps XLA's defaults.
 
 Pictures need matplotlib (`pip install "constrained_jax[plot]"`); without it the
 checks still run, and the pictures are skipped with a message saying so.
@@ -90,27 +92,38 @@ def _run(job: tour.Job):
 
 
 def _code_generator(xla_defaults: bool) -> str:
-    """Turns on XLA:CPU's older code generator unless `xla_defaults` (or the user's
-    `XLA_FLAGS` choose), and says which one compiles."""
-    from ._code_generator import _user_choice, use_fast_compilation
+    """Turns on XLA:CPU's older code generator and single-function loops unless
+    `xla_defaults` (or the user's `XLA_FLAGS` choose), and says what compiles."""
+    from ._code_generator import (
+        _extra_options,
+        _LOOP_OPTION,
+        _user_choice,
+        use_fast_compilation,
+        use_loop_kernels,
+    )
 
     if not xla_defaults:
-        with warnings.catch_warnings():
-            # The user's `XLA_FLAGS` ask for the fusion emitters, or this jaxlib does
-            # not know the flag: XLA's default, as the line printed says.
-            warnings.simplefilter("ignore")
-            try:
-                use_fast_compilation()
-            except RuntimeError:
-                # `main` called in a process whose JAX backend has already started
-                # (a notebook, a test): its code generator stays as it is.
-                pass
-    if _user_choice(os.environ.get("XLA_FLAGS", "")):
-        return (
-            "XLA:CPU's older code generator (faster compilation; --xla-defaults: "
-            "XLA's default)"
-        )
-    return "XLA's default code generator"
+        for turn_on in (use_fast_compilation, use_loop_kernels):
+            with warnings.catch_warnings():
+                # The user's `XLA_FLAGS` choose otherwise, or this jaxlib does not
+                # know the flag: XLA's default, as the line printed says.
+                warnings.simplefilter("ignore")
+                try:
+                    turn_on()
+                except RuntimeError:
+                    # `main` called in a process whose JAX backend has already
+                    # started (a notebook, a test): its settings stay as they are.
+                    pass
+    flags = os.environ.get("XLA_FLAGS", "")
+    parts = []
+    if _user_choice(flags):
+        parts.append("XLA:CPU's older code generator")
+    limit = _extra_options(flags)[1].get(_LOOP_OPTION, "").strip()
+    if limit not in ("", "0"):
+        parts.append(f"loops up to {limit} bytes as one function")
+    if not parts:
+        return "XLA's defaults"
+    return " and ".join(parts) + " (--xla-defaults: XLA's defaults)"
 
 
 def _have_matplotlib() -> bool:
@@ -132,8 +145,8 @@ def _parser() -> argparse.ArgumentParser:
             "fails. Pictures need matplotlib: pip install 'constrained_jax[plot]'. "
             "Compiled programs are kept in JAX's persistent compilation cache, so a "
             "second run skips most of the compilation (--no-compilation-cache), and "
-            "compiled with XLA:CPU's older code generator, about 2x faster to compile "
-            "(--xla-defaults)."
+            "compiled with XLA:CPU's older code generator, about 2x faster to compile, "
+            "small loops into one function each (--xla-defaults)."
         ),
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -160,9 +173,10 @@ def _parser() -> argparse.ArgumentParser:
             "--xla-defaults",
             action="store_true",
             help=(
-                "compile with XLA's default CPU code generator (default: its older "
-                "one, about 2x faster to compile, see "
-                "constrained_jax.use_fast_compilation)"
+                "compile with XLA's default CPU settings (default: its older code "
+                "generator, about 2x faster to compile, and small loops into one "
+                "function each; see constrained_jax.use_fast_compilation and "
+                "constrained_jax.use_loop_kernels)"
             ),
         )
         p.add_argument(

@@ -237,7 +237,8 @@ def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
 
 def test_the_older_code_generator_by_default():
     """A fresh `constrained-jax` process compiles with XLA:CPU's older code generator
-    (`cjax.use_fast_compilation`: the flag in its `XLA_FLAGS`) and says so."""
+    and small loops as one function each (`cjax.use_fast_compilation`,
+    `cjax.use_loop_kernels`: the flags in its `XLA_FLAGS`) and says so."""
     run = run_python(
         "import sys; from constrained_jax.__main__ import main; "
         "code = main(['scene', 'cylinder_volume', '--no-plots', "
@@ -249,23 +250,37 @@ def test_the_older_code_generator_by_default():
     )
     assert run.returncode == 0, run.stdout + run.stderr
     if importlib.metadata.version("jaxlib") in _code_generator._KNOWN_JAXLIB:
-        assert "compilation included, XLA:CPU's older code generator" in run.stdout
-        assert "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false" in run.stdout
+        assert (
+            "compilation included, XLA:CPU's older code generator and loops up to "
+            "65536 bytes as one function" in run.stdout
+        )
+        assert (
+            "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false --xla_backend_extra_options"
+            "=xla_cpu_small_while_loop_byte_threshold=65536" in run.stdout
+        )
     else:
-        assert "compilation included, XLA's default code generator" in run.stdout
+        assert "compilation included, XLA's defaults" in run.stdout
 
 
 def test_xla_defaults_switch(monkeypatch):
-    """`--xla-defaults` never calls `use_fast_compilation`, and says which code
-    generator compiles."""
+    """`--xla-defaults` calls neither `use_fast_compilation` nor `use_loop_kernels`,
+    and says what compiles: the user's own settings in `XLA_FLAGS`, if any."""
     from constrained_jax import _code_generator as module
 
     def fail():
-        raise AssertionError("use_fast_compilation called despite --xla-defaults")
+        raise AssertionError("an XLA setting turned on despite --xla-defaults")
 
     monkeypatch.setattr(module, "use_fast_compilation", fail)
+    monkeypatch.setattr(module, "use_loop_kernels", fail)
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
-    assert cli._code_generator(True) == "XLA's default code generator"
+    assert cli._code_generator(True) == "XLA's defaults"
+    monkeypatch.setenv(
+        "XLA_FLAGS",
+        "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=4096",
+    )
+    assert cli._code_generator(True) == (
+        "loops up to 4096 bytes as one function (--xla-defaults: XLA's defaults)"
+    )
     assert cli._parser().parse_args(["tour", "--xla-defaults"]).xla_defaults
     assert not cli._parser().parse_args(["tour"]).xla_defaults
 
