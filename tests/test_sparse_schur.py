@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import constrained_jax as cj
+from constrained_jax._solver import sparse as sparse_module
 from constrained_jax._solver.sparse import SparseMatrix
 from constrained_jax._solver.sparse_schur import _band_order, _gather_sum, _plan, _take
 from constrained_jax.scenes import chain
@@ -336,3 +337,34 @@ def test_static_indices_as_slices_or_gathers():
         np.testing.assert_array_equal(
             _gather_sum(jnp.asarray(values), index), padded[index].sum(axis=1)
         )
+
+
+@pytest.mark.parametrize(
+    "shape, density", [((3, 3), 0.5), ((2, 5), 0.6), ((40, 30), 0.1)]
+)
+@pytest.mark.parametrize("transpose", [False, True])
+def test_matvec_matches_the_dense_product(shape, density, transpose):
+    """`matvec` on the nonzeros equals the dense product, both ways, also under
+    `jax.vmap`; up to `_UNROLL` nonzeros its program has no gather or scatter (which
+    keep XLA:CPU from compiling a small loop into one function), above it is one
+    scatter-add."""
+    rng = np.random.default_rng(0)
+    pattern = rng.random(shape) < density
+    pattern[0, 0] = True
+    dense = np.where(pattern, rng.normal(size=shape), 0.0)
+    matrix = SparseMatrix.from_dense(jnp.asarray(dense), pattern)
+    vector = jnp.asarray(rng.normal(size=shape[0] if transpose else shape[1]))
+    expected = (dense.T if transpose else dense) @ np.asarray(vector)
+    out = sparse_module.matvec(matrix, vector, transpose=transpose)
+    np.testing.assert_allclose(out, expected, rtol=1e-13, atol=1e-13)
+    batched = jax.vmap(lambda v: sparse_module.matvec(matrix, v, transpose=transpose))(
+        jnp.stack([vector, 2 * vector])
+    )
+    np.testing.assert_allclose(batched[1], 2 * expected, rtol=1e-13, atol=1e-13)
+    jaxpr = str(
+        jax.make_jaxpr(lambda m, v: sparse_module.matvec(m, v, transpose))(
+            matrix, vector
+        )
+    )
+    small = int(pattern.sum()) <= sparse_module._UNROLL
+    assert ("gather" in jaxpr or "scatter" in jaxpr) is not small

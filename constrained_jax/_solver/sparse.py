@@ -5,10 +5,20 @@ nonzero `values` are arrays (batched under `jax.vmap`). So a solver can plan its
 elimination once, at trace time, and the memory of a state is `O(nnz)`, not `O(n^2)`.
 """
 
+import functools
+import operator
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+
+
+# Up to this many nonzeros, products are written on scalars with static indices: no
+# gather or scatter, which XLA:CPU never compiles into the single function of a
+# small loop (`constrained_jax.use_loop_kernels`), so that a gradient through
+# `simulate` of a small system stays one function per step.
+_UNROLL = 64
 
 
 class SparseMatrix(eqx.Module):
@@ -64,7 +74,17 @@ def matvec(matrix, vector, transpose: bool = False) -> Array:
     size = matrix.shape[1] if transpose else matrix.shape[0]
     if transpose:
         rows, cols = cols, rows
-    out = jnp.zeros((size,), jnp.result_type(matrix.values, vector))
+    dtype = jnp.result_type(matrix.values, vector)
+    out = jnp.zeros((size,), dtype)
     if rows.size == 0:
         return out
+    if rows.size <= _UNROLL:
+        terms: list[list] = [[] for _ in range(size)]
+        for p, (r, c) in enumerate(zip(rows.tolist(), cols.tolist(), strict=True)):
+            terms[r].append(matrix.values[p] * vector[c])
+        zero = jnp.zeros((), dtype)
+        return jnp.stack(
+            [functools.reduce(operator.add, t).astype(dtype) if t else zero
+             for t in terms]
+        )  # fmt: skip
     return out.at[rows].add(matrix.values * vector[cols])
