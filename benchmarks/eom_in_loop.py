@@ -28,9 +28,10 @@ right-hand side" times a whole `simulate` of 16 steps. This script takes it apar
 Medians of `--repeats` rounds (each round calls every program once, in turn).
 
     python benchmarks/eom_in_loop.py [--calls 2000] [--repeats 201]
-        [--out benchmarks/results]
+        [--out benchmarks/results] [--loop-kernels]
 
-Writes `eom_in_loop.json` and `eom_in_loop.png`.
+Writes `eom_in_loop.json` and `eom_in_loop.png` (`--loop-kernels`, which measures with
+`cjax.use_loop_kernels()`: `eom_in_loop_loop_kernels.json`, `.png`).
 """
 
 import argparse
@@ -207,7 +208,12 @@ def main():
     parser.add_argument("--calls", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=201)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    parser.add_argument("--loop-kernels", action="store_true")
     opts = parser.parse_args()
+    if opts.loop_kernels:
+        import constrained_jax as cjax
+
+        assert cjax.use_loop_kernels()
     cases = {}
     for scene in ("pendulum", "cylinders"):
         cases[scene] = eom_in_loop(scene, opts.calls, opts.repeats)
@@ -224,8 +230,9 @@ def main():
             f"(steps {split['steps']})"
         )
     out = Path(opts.out)
-    write_cases(out / "eom_in_loop.json", cases)
-    _plot(cases, out / "eom_in_loop.png")
+    stem = "eom_in_loop_loop_kernels" if opts.loop_kernels else "eom_in_loop"
+    write_cases(out / f"{stem}.json", cases)
+    _plot(cases, out / f"{stem}.png")
 
 
 if __name__ == "__main__":
