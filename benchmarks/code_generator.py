@@ -32,13 +32,11 @@ Writes `benchmarks/results/code_generator.json` and `code_generator.png` (with
 """
 
 import argparse
-import importlib
 import json
 import os
 import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 
@@ -97,18 +95,12 @@ def child(setting: str, repeats: int, release: bool) -> dict:
         run = chain.trajectory(links, None, repeats)
         out[f"chain N = {links}, one trajectory ms"] = run["median_s"] * 1e3
     import ab
+    from _common import time_jax
 
-    cases = ab.cases(importlib.import_module("constrained_jax"))
+    cases = ab.cases(cjax)
     for name in ("sim pendulum 20s", "sim release 1"):
         fn, inputs = cases[name]
-        compiled = jax.jit(fn).lower(*inputs).compile()
-        jax.block_until_ready(compiled(*inputs))
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            jax.block_until_ready(compiled(*inputs))
-            times.append(time.perf_counter() - start)
-        out[f"{name} ms"] = statistics.median(times) * 1e3
+        out[f"{name} ms"] = time_jax(fn, *inputs, repeats=repeats)[1]["median_s"] * 1e3
     return out
 
 
