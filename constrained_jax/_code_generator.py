@@ -28,6 +28,7 @@ process, so both are only set for the jaxlib they were measured with.
 """
 
 import importlib.metadata
+import operator
 import os
 import warnings
 
@@ -198,7 +199,11 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
     `RuntimeError` if JAX's backend has already started and the limit is not set:
     the call comes too late.
     """
-    if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 1:
+    try:
+        limit = operator.index(max_bytes)  # an int, a NumPy integer
+    except TypeError:
+        limit = None
+    if isinstance(max_bytes, bool) or limit is None or limit < 1:
         raise ValueError(
             f"use_loop_kernels: `max_bytes` must be a positive integer, got "
             f"{max_bytes!r}."
@@ -229,10 +234,10 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
             "use_loop_kernels() must be called before the first JAX computation: "
             "JAX's backend has already started and read XLA_FLAGS. Call it at the top "
             "of the script or notebook (after the imports is fine), or set "
-            f"XLA_FLAGS={_EXTRA}={_LOOP_OPTION}={max_bytes} in the environment before "
+            f"XLA_FLAGS={_EXTRA}={_LOOP_OPTION}={limit} in the environment before "
             "starting Python."
         )
-    option = f"{_LOOP_OPTION}={max_bytes}"
+    option = f"{_LOOP_OPTION}={limit}"
     if index is None:
         os.environ["XLA_FLAGS"] = f"{flags} {_EXTRA}={option}".strip()
         return True

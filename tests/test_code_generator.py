@@ -8,6 +8,7 @@ import importlib.metadata
 import os
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import constrained_jax as cjax
@@ -152,7 +153,7 @@ def test_loop_kernels_merge_with_the_users_backend_options(monkeypatch):
         "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling"
     )
     monkeypatch.setenv("XLA_FLAGS", user)
-    assert cjax.use_loop_kernels(4096) is True
+    assert cjax.use_loop_kernels(np.int64(4096)) is True  # any integer type
     assert os.environ["XLA_FLAGS"] == (
         f"{user},xla_cpu_small_while_loop_byte_threshold=4096"
     )
