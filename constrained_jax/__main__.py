@@ -28,7 +28,7 @@ Programs are compiled with XLA:CPU's older code generator
 (`constrained_jax.use_fast_compilation`: about 2x faster to compile, the same results
 to round-off, programs up to 27 % slower to run; a first run of the tour took 24-27 s
 instead of 36-41 s on 2 cores), and small loops (a single trajectory) into one
-function each (`constrained_jax.use_loop_kernels`: 2-6x faster single trajectories,
+function each (`constrained_jax.use_loop_kernels`: 1.7-5x faster single trajectories,
 and faster compilation too); `--xla-defaults` keeps XLA's defaults.
 
 Pictures need matplotlib (`pip install "constrained_jax[plot]"`); without it the
