@@ -186,8 +186,9 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
 
     - `max_bytes`: the largest number of bytes a loop's body may access to be
         compiled into one function (a positive integer). Larger limits take in
-        loops over large arrays, where the single function can be slower than XLA's
-        parallel kernels.
+        loops over larger arrays: a `jax.vmap` of 64 release runs 1.6x faster at
+        1 MB, but a single run that saves 201 points 1.5x slower (its loop over the
+        saved outputs, as one function, is slower than XLA's kernels).
 
     **Returns:** `True` when the limit is set (now, or already by the user's
     `XLA_FLAGS`, whose value is kept); `False`, with a warning, where the user's
