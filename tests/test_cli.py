@@ -252,11 +252,11 @@ def test_the_older_code_generator_by_default():
     if importlib.metadata.version("jaxlib") in _code_generator._KNOWN_JAXLIB:
         assert (
             "compilation included, XLA:CPU's older code generator and loops up to "
-            "65536 bytes as one function" in run.stdout
+            "1048576 bytes as one function" in run.stdout
         )
         assert (
             "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false --xla_backend_extra_options"
-            "=xla_cpu_small_while_loop_byte_threshold=65536" in run.stdout
+            "=xla_cpu_small_while_loop_byte_threshold=1048576" in run.stdout
         )
     else:
         assert "compilation included, XLA's defaults" in run.stdout

@@ -96,7 +96,7 @@ def test_an_unknown_jaxlib_keeps_xlas_defaults(monkeypatch):
 _LOOP = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold"
 
 # A loop whose body touches about 5 kB (a float64 vector of 300 entries, read and
-# written): above XLA's default limit (1 kB), below the library's (64 kB). Printed:
+# written): above XLA's default limit (1 kB), below the library's (1 MB). Printed:
 # whether XLA compiled the loop into one function, and the result.
 _LOOP_PROGRAM = """
 import os, jax, jax.numpy as jnp
