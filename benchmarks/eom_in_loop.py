@@ -35,8 +35,6 @@ Writes `eom_in_loop.json` and `eom_in_loop.png` (`--loop-kernels`, which measure
 """
 
 import argparse
-import statistics
-import time
 from pathlib import Path
 
 import jax
@@ -46,7 +44,7 @@ jax.config.update("jax_enable_x64", True)
 
 import dynamics  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _common import write_cases  # noqa: E402
+from _common import time_jax_interleaved, write_cases  # noqa: E402
 from jax import lax  # noqa: E402
 
 from constrained_jax._solver.diagonal import diagonal_range_space  # noqa: E402
@@ -64,24 +62,6 @@ def _in_loop(fn, calls: int):
         return lax.fori_loop(0, calls, body, (q, qd))
 
     return jax.jit(run)
-
-
-def _alternate(fns: dict, args: tuple, repeats: int) -> dict:
-    """Median seconds of each `fns[name](*args)`, compiled (or given compiled), called
-    in turn."""
-    compiled = {
-        name: fn if hasattr(fn, "as_text") else jax.jit(fn).lower(*args).compile()
-        for name, fn in fns.items()
-    }
-    for fn in compiled.values():
-        jax.block_until_ready(fn(*args))
-    times: dict = {name: [] for name in compiled}
-    for _ in range(repeats):
-        for name, fn in compiled.items():
-            start = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            times[name].append(time.perf_counter() - start)
-    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def eom_in_loop(scene: str, calls: int, repeats: int) -> dict:
@@ -118,12 +98,17 @@ def eom_in_loop(scene: str, calls: int, repeats: int) -> dict:
         "equations only": equations,
         "hand-written": hand,
     }
-    medians = _alternate(
+    _, infos = time_jax_interleaved(
         {name: _in_loop(fn, calls) for name, fn in variants.items()},
-        (q, qd, args),
-        repeats,
+        q,
+        qd,
+        args,
+        repeats=repeats,
     )
-    rows = {name: {"ns_per_call": s / calls * 1e9} for name, s in medians.items()}
+    rows = {
+        name: {"ns_per_call": info["median_s"] / calls * 1e9}
+        for name, info in infos.items()
+    }
     hand_ns = rows["hand-written"]["ns_per_call"]
     for row in rows.values():
         row["ratio_to_hand_written"] = row["ns_per_call"] / hand_ns
@@ -136,23 +121,28 @@ def trajectory_split(repeats: int) -> dict:
     args = dynamics.cyl.default_args()
     tol = dynamics.JAX_TOLERANCES["cylinders"]
     horizons = (0.8, 1.6)
-    fns, steps = {}, {}
-    saved = dynamics.CYLINDERS_T1
-    try:
-        for t1 in horizons:
-            # `_final_state` reads the horizon when it is traced: trace now.
+
+    def at(t1, make):
+        # `_final_state` reads the horizon when it is traced.
+        fn = make("cylinders", tol)
+
+        def final_state(theta0, args):
+            saved = dynamics.CYLINDERS_T1
             dynamics.CYLINDERS_T1 = t1
-            ours = jax.jit(dynamics._final_state("cylinders", tol))
-            hand = jax.jit(dynamics._final_state_by_hand("cylinders", tol))
-            fns[("ours", t1)] = ours.lower(theta0, args).compile()
-            fns[("hand", t1)] = hand.lower(theta0, args).compile()
-            steps[t1] = int(fns[("ours", t1)](theta0, args)[2])
-    finally:
-        dynamics.CYLINDERS_T1 = saved
-    names = {key: f"{key[0]} {key[1]}" for key in fns}
-    medians = _alternate(
-        {names[key]: fn for key, fn in fns.items()}, (theta0, args), repeats
-    )
+            try:
+                return fn(theta0, args)
+            finally:
+                dynamics.CYLINDERS_T1 = saved
+
+        return final_state
+
+    fns = {}
+    for t1 in horizons:
+        fns[f"ours {t1}"] = at(t1, dynamics._final_state)
+        fns[f"hand {t1}"] = at(t1, dynamics._final_state_by_hand)
+    outputs, infos = time_jax_interleaved(fns, theta0, args, repeats=repeats)
+    medians = {name: info["median_s"] for name, info in infos.items()}
+    steps = {t1: int(outputs[f"ours {t1}"][2]) for t1 in horizons}
     out: dict = {"steps": {str(t1): steps[t1] for t1 in horizons}}
     for who in ("ours", "hand"):
         (t_a, t_b) = (medians[f"{who} {t1}"] for t1 in horizons)
