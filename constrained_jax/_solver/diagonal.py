@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jaxtyping import Array
 
 from .saddle_point import (
     _dot,
@@ -100,12 +101,31 @@ def free_gauges(mass, jac, n: int) -> list:
     ]
 
 
-def diagonal_range_space(mass, jac, rhs, bias):
+def stack_by_select(values: list) -> Array:
+    """`jnp.stack(values)` for scalars, written as a chain of `where`s on an index.
+
+    The same values, exactly. Under `jax.vmap` a stack of per-state scalars is a
+    concatenate along the minor axis, which XLA:CPU writes in the transposed layout
+    and then copies into the output's; the `where`s are elementwise and write the
+    output in place (one pass over the batch fewer: two cylinders, 1e4 states,
+    1.20x -> 1.03x the hand-written equations on one thread). On a single state the
+    plain `jnp.stack` is the cheaper, so the batched path alone uses this.
+    """
+    index = lax.iota(np.int32, len(values))
+    out = jnp.broadcast_to(values[-1], (len(values),))
+    for i in range(len(values) - 2, -1, -1):
+        out = jnp.where(index == i, values[i], out)
+    return out
+
+
+def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack):
     """The fast path, assuming `needs_general` is false: `(x, lambda, singular)`.
 
     `singular` flags a vanishing pivot of `A D^-1 A^T` (below `10 k eps` of its
     largest entry: redundant constraints), a force on a massless coordinate that
     nothing couples to (`|f_i| > 100 n eps max|f|`) and a non-finite result.
+    `stack` assembles `x` and `lambda` from their entries (`stack_by_select` under
+    `jax.vmap`).
     """
     n, k = rhs.shape[0], bias.shape[0]
     d = _diagonal(mass, n)
@@ -155,8 +175,8 @@ def diagonal_range_space(mass, jac, rhs, bias):
     # separate passes over the batch.
     finite = [jnp.isfinite(v) for v in x + lam]
     singular = singular | jnp.invert(functools.reduce(jnp.logical_and, finite))
-    x = jnp.stack([jnp.where(singular, zero, v) for v in x])
-    lam = jnp.stack([jnp.where(singular, zero, v) for v in lam]) if k else zeros_lam
+    x = stack([jnp.where(singular, zero, v) for v in x])
+    lam = stack([jnp.where(singular, zero, v) for v in lam]) if k else zeros_lam
     return x, lam, singular
 
 
@@ -198,10 +218,11 @@ def diagonal_solve(mass, jac, rhs, bias, general):
         flags = _batched(
             lambda m, a: needs_general(m, a, n), axis_size, in_batched[:2], args[:2]
         )
+        fast = functools.partial(diagonal_range_space, stack=stack_by_select)
         out = lax.cond(
             jnp.any(flags),
             lambda: _batched(general, axis_size, in_batched, args),
-            lambda: _batched(diagonal_range_space, axis_size, in_batched, args),
+            lambda: _batched(fast, axis_size, in_batched, args),
         )
         return out, (True, True, True)
 
