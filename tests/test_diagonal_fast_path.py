@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import constrained_jax as cjax
+from constrained_jax._solver.diagonal import stack_by_select
 from constrained_jax._solver.sparse import SparseMatrix
 from constrained_jax.scenes import two_cylinders as cyl
 
@@ -88,6 +89,37 @@ def test_constant_rows_under_vmap():
     for i in range(7):
         ref = _reference(mass, jac, rhs[i], bias)
         _assert_agree(jax.tree.map(lambda v, i=i: v[i], out), ref)
+
+
+def test_stack_by_select_is_stack():
+    """The batched path's `where` chain gives `jnp.stack`'s values bit for bit (NaN,
+    infinities and the sign of zero included), alone and under `jax.vmap`."""
+    values = [jnp.asarray(v) for v in (-0.0, 1.5, jnp.nan, -jnp.inf, 3.0)]
+    np.testing.assert_array_equal(stack_by_select(values), jnp.stack(values))
+    assert jnp.signbit(stack_by_select(values)[0])
+    batch = jnp.asarray(np.random.default_rng(4).normal(size=(6, 3)))
+    stacked = jax.jit(jax.vmap(lambda r: stack_by_select([r[2], r[0], r[1]])))(batch)
+    np.testing.assert_array_equal(stacked, batch[:, [2, 0, 1]])
+    assert stack_by_select([jnp.asarray(2.0)]).shape == (1,)
+
+
+def test_batched_fast_path_is_the_single_one():
+    """Under `jax.vmap` the fast path assembles its outputs with `stack_by_select`
+    (written in place; the time is in `benchmarks/eom_threads.py`): the same numbers
+    as one state at a time."""
+    rng = np.random.default_rng(5)
+    pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
+    mass, jac, _, _ = _problem(rng, 3, 2, pattern)
+    rhs = jnp.asarray(rng.normal(size=(64, 3)))
+    bias = jnp.asarray(rng.normal(size=(64, 2)))
+    batched = jax.jit(jax.vmap(AUTO.solve, in_axes=(None, None, 0, 0)))
+    x, lam, singular = batched(mass, jac, rhs, bias)
+    one = jax.jit(AUTO.solve)
+    for i in range(0, 64, 9):
+        x_i, lam_i, singular_i = one(mass, jac, rhs[i], bias[i])
+        np.testing.assert_allclose(x[i], x_i, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(lam[i], lam_i, rtol=1e-14, atol=1e-14)
+        assert bool(singular[i]) == bool(singular_i)
 
 
 def test_free_gauge():
