@@ -122,6 +122,46 @@ def test_batched_fast_path_is_the_single_one():
         assert bool(singular[i]) == bool(singular_i)
 
 
+@pytest.mark.parametrize("sparse_jac", [False, True])
+def test_everything_batched(sparse_jac):
+    """`M`, `A`, `f` and the bias all batched (their batch axis crosses into the
+    batch's `lax.cond` last): each state as alone, with the fast path and, in a
+    batch where one state has a coupled zero mass, with the general method."""
+    rng = np.random.default_rng(6)
+    pattern = np.array([[1, 0, 1], [0, 1, 1]], bool)
+    num = 5
+    masses = rng.uniform(0.5, 2.0, size=(num, 3))
+    jacs = rng.normal(size=(num, 2, 3)) * pattern
+    rhs = jnp.asarray(rng.normal(size=(num, 3)))
+    bias = jnp.asarray(rng.normal(size=(num, 2)))
+    eye = np.eye(3, dtype=bool)
+
+    def make(m, a):
+        mass = SparseMatrix(jnp.asarray(m), (0, 1, 2), (0, 1, 2), (3, 3))
+        if not sparse_jac:
+            return mass, jnp.asarray(a)
+        rows, cols = np.nonzero(pattern)
+        jac = SparseMatrix(
+            jnp.asarray(a[..., rows, cols]),
+            tuple(int(r) for r in rows),
+            tuple(int(c) for c in cols),
+            (2, 3),
+        )
+        return mass, jac
+
+    solve = jax.jit(jax.vmap(AUTO.solve))
+    for zero in (False, True):
+        m = masses.copy()
+        if zero:
+            m[3, 2] = 0.0  # coupled by both rows: the general method, whole batch
+        mass, jac = make(m, jacs)
+        out = solve(mass, jac, rhs, bias)
+        for i in range(num):
+            dense_mass = SparseMatrix.from_dense(jnp.diag(jnp.asarray(m[i])), eye)
+            ref = _reference(dense_mass, jnp.asarray(jacs[i]), rhs[i], bias[i])
+            _assert_agree(jax.tree.map(lambda v, i=i: v[i], out), ref)
+
+
 def test_free_gauge():
     """A zero mass that nothing couples to: zero acceleration without a force on it,
     singular with one."""

@@ -186,6 +186,35 @@ def _batched(fn, axis_size, in_batched, args):
     return jax.vmap(fn, in_axes=axes, axis_size=axis_size)(*args)
 
 
+def _batch_last(args, in_batched):
+    """`(moved, back)`: the batched arrays of `args` (of rank 2 and more) with their
+    batch axis moved last, and the function that moves it back to the front.
+
+    An operand of a `lax.cond` is passed in XLA's default layout (the last axis
+    fastest). The entries of a batched `A` (shape `(N, k, n)`), of `f` and of the bias
+    are computed as separate loops over the batch, each written as a contiguous run:
+    the layout of shape `(k, n, N)`. Passed as `(N, k, n)`, the branch copies it into
+    the default layout first (one pass over the batch per operand); passed as
+    `(k, n, N)`, it is the same memory and XLA drops the transposes. (Two cylinders,
+    1e4 states, one thread: 1.02x -> 0.95x the hand-written equations; the pendulum
+    1.28x -> 1.12x; at 1e6 states 2.1x -> 1.9x and 1.4x -> 1.1x.)"""
+    flags = jax.tree.leaves(in_batched)
+    leaves, treedef = jax.tree.flatten(args)
+    moves = [bool(b) and np.ndim(x) >= 2 for x, b in zip(leaves, flags, strict=True)]
+    moved = [
+        jnp.moveaxis(x, 0, -1) if m else x for x, m in zip(leaves, moves, strict=True)
+    ]
+
+    def back(moved_leaves):
+        out = [
+            jnp.moveaxis(x, -1, 0) if m else x
+            for x, m in zip(moved_leaves, moves, strict=True)
+        ]
+        return jax.tree.unflatten(treedef, out)
+
+    return moved, back
+
+
 def diagonal_solve(mass, jac, rhs, bias, general):
     """Solves the saddle-point system for a diagonal `SparseMatrix` `mass`: the fast
     path where it applies, else `general(mass, jac, rhs, bias)`, one `lax.cond` per
@@ -219,10 +248,16 @@ def diagonal_solve(mass, jac, rhs, bias, general):
             lambda m, a: needs_general(m, a, n), axis_size, in_batched[:2], args[:2]
         )
         fast = functools.partial(diagonal_range_space, stack=stack_by_select)
+        # The batched operands cross into the `lax.cond` with the batch axis last:
+        # the layout in which XLA:CPU computes them (each entry a contiguous run over
+        # the batch), so that they need no transposing copy in the branch (see
+        # `_batch_last`).
+        moved, back = _batch_last(args, in_batched)
         out = lax.cond(
             jnp.any(flags),
-            lambda: _batched(general, axis_size, in_batched, args),
-            lambda: _batched(fast, axis_size, in_batched, args),
+            lambda m: _batched(general, axis_size, in_batched, back(m)),
+            lambda m: _batched(fast, axis_size, in_batched, back(m)),
+            moved,
         )
         return out, (True, True, True)
 
