@@ -215,3 +215,32 @@ def test_automatic_choosing_a_solver_of_the_users(unroll_max):
         qdd, lam, singular = solve(q_, qd, 0.0, args_)
         assert singular
         assert jnp.all(qdd == 0) and jnp.all(lam == 0)
+
+
+def test_dot_is_the_negated_sum_bit_for_bit():
+    """`_dot` adds the products in order; it gives the values of the former
+    `_minus_sum(None, [-u_i v_i, ...])` bit for bit, signed zeros and non-finite
+    entries included, and `None` (a structural zero) where every term is one."""
+    from constrained_jax._solver.saddle_point import _dot, _minus_sum
+
+    rng = np.random.default_rng(7)
+    special = [0.0, -0.0, 1e-300, -1e300, np.inf, np.nan]
+    for _ in range(200):
+        m = int(rng.integers(1, 5))
+        pool = list(rng.normal(size=8) * 10.0 ** rng.integers(-5, 5, 8)) + special
+
+        def entries(pool=pool, m=m):
+            return [
+                None if rng.random() < 0.2 else jnp.asarray(rng.choice(pool))
+                for _ in range(m)
+            ]
+
+        u, v = entries(), entries()
+        pairs = zip(u, v, strict=True)
+        terms = [None if a is None or b is None else -a * b for a, b in pairs]
+        old, new = _minus_sum(None, terms), _dot(u, v)
+        if old is None:
+            assert new is None
+            continue
+        np.testing.assert_array_equal(np.asarray(new), np.asarray(old))
+        assert np.signbit(new) == np.signbit(old) or np.isnan(old)
