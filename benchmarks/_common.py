@@ -173,3 +173,17 @@ def write_cases(path, cases: dict) -> None:
         json.dumps({"machine": machine_info(), "cases": cases}, indent=2) + "\n"
     )
     print(f"wrote {path}")
+
+
+def pyplot():
+    """`matplotlib.pyplot` with the non-GUI backend, or `None` (and a message)
+    without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("no matplotlib: no plot")
+        return None
+    return plt

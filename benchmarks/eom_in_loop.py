@@ -44,7 +44,7 @@ jax.config.update("jax_enable_x64", True)
 
 import dynamics  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _common import time_jax_interleaved, write_cases  # noqa: E402
+from _common import pyplot, time_jax_interleaved, write_cases  # noqa: E402
 from jax import lax  # noqa: E402
 
 from constrained_jax._solver.diagonal import diagonal_range_space  # noqa: E402
@@ -156,13 +156,8 @@ def trajectory_split(repeats: int) -> dict:
 
 
 def _plot(cases: dict, path: Path) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("no matplotlib: no plot")
+    plt = pyplot()
+    if plt is None:
         return
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
     ax = axes[0]

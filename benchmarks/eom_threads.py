@@ -110,13 +110,11 @@ def summarize(runs: list[dict]) -> dict:
 
 
 def _plot(cases: dict, path: Path) -> None:
-    try:
-        import matplotlib
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _common import pyplot
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("no matplotlib: no plot")
+    plt = pyplot()
+    if plt is None:
         return
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), sharey=True)
     styles = {"threads": "-", "one thread": "--"}
