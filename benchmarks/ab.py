@@ -10,7 +10,9 @@ less than wall time. The table gives medians and the ratio B / A.
 Cases (float64, after compilation):
 
 - `acc pendulum 10k`, `acc cylinders 10k`: `jit(vmap(solve_accelerations))` over
-  10,000 states (the accelerations table of `dynamics.py`).
+  10,000 states (the accelerations table of `dynamics.py`), with `args` closed over
+  (constants: XLA folds the batch-level `lax.cond` of the diagonal fast path away);
+  `..., traced args`: the same with `args` an argument, as `dynamics.py` passes them.
 - `sim pendulum 20s`: one `simulate` (Tsit5, rtol = atol = 1e-8) of the Cartesian
   pendulum over 20 s.
 - `sim release 1`, `sim release vmap 64`: the two cylinders with the contact
@@ -77,6 +79,16 @@ def cases(cj) -> dict:
         jnp.asarray(th), jnp.asarray(thd)
     )
     out["acc cylinders 10k"] = (acc(c_sys, c_args), (cq, cqd))
+    # The same with `args` traced (as `dynamics.py` and most users pass them): above,
+    # closed over, they are constants and XLA folds the batch's `lax.cond` away.
+    traced = lambda s: jax.jit(
+        jax.vmap(
+            lambda q_, qd_, a_: s.solve_accelerations(q_, qd_, 0.0, a_)[:2],
+            in_axes=(0, 0, None),
+        )
+    )
+    out["acc pendulum 10k, traced args"] = (traced(p_sys), (q, qd, p_args))
+    out["acc cylinders 10k, traced args"] = (traced(c_sys), (cq, cqd, c_args))
 
     controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
 
