@@ -56,13 +56,21 @@ def test_the_users_own_setting_is_kept(monkeypatch, flags, expected):
     """Whatever the user's `XLA_FLAGS` says about the code generator wins, even after
     the backend started (then nothing needs to change); asking for the fusion
     emitters gives `False` and a warning."""
+    warning = "user's setting is kept"
+    _assert_keeps(monkeypatch, cjax.use_fast_compilation, flags, expected, warning)
+
+
+def _assert_keeps(monkeypatch, use, flags, expected, warning):
+    """`use()` after the backend started, with the user's `flags` in `XLA_FLAGS`:
+    `True` if they already ask for the setting, else `False` with `warning`; either
+    way `XLA_FLAGS` is left as it was."""
     monkeypatch.setenv("XLA_FLAGS", f"--xla_cpu_multi_thread_eigen=true {flags}")
     jnp.zeros(1).block_until_ready()  # the backend has started
     if expected:
-        assert cjax.use_fast_compilation() is True
+        assert use() is True
     else:
-        with pytest.warns(UserWarning, match="user's setting is kept"):
-            assert cjax.use_fast_compilation() is False
+        with pytest.warns(UserWarning, match=warning):
+            assert use() is False
     assert os.environ["XLA_FLAGS"] == f"--xla_cpu_multi_thread_eigen=true {flags}"
 
 
@@ -163,17 +171,12 @@ def test_loop_kernels_merge_with_the_users_backend_options(monkeypatch):
 def test_loop_kernels_keep_the_users_own_limit(monkeypatch, value, expected):
     """A limit the user set wins, even after the backend started (nothing needs to
     change); a limit of 0 (the pass turned off) gives `False` and a warning."""
-    jnp.zeros(1).block_until_ready()  # the backend has started
     flags = (
         f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={value}"
     )
-    monkeypatch.setenv("XLA_FLAGS", f"--xla_cpu_multi_thread_eigen=true {flags}")
-    if expected:
-        assert cjax.use_loop_kernels() is True
-    else:
-        with pytest.warns(UserWarning, match="turns the pass off"):
-            assert cjax.use_loop_kernels() is False
-    assert os.environ["XLA_FLAGS"] == f"--xla_cpu_multi_thread_eigen=true {flags}"
+    _assert_keeps(
+        monkeypatch, cjax.use_loop_kernels, flags, expected, "turns the pass off"
+    )
 
 
 def test_loop_kernels_too_late_or_a_bad_limit_is_refused(monkeypatch):
