@@ -161,7 +161,8 @@ def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
     multiplier, the saved multipliers, the singular check), some of which diffrax
     traces more than once. Under `jit` the later calls reuse the first trace (and XLA
     inlines the calls, so the compiled program is the same). `t` is cast to the dtype
-    of `q` (not weakly typed) so that every call site has the same signature."""
+    of `q` (not weakly typed) so that every call site has the same signature.
+    `qddot` is NaN where `singular` (see `_field`)."""
     t = jnp.asarray(t, q.dtype)
     return _jit_solve_accelerations(system, q, qd, t, args, bias_correction)
 
@@ -183,10 +184,11 @@ def _field_and_multipliers(system, stabilization):
 def _field(system, stabilization, t, y, args):
     q, qd = y
     correction = stabilization.bias_correction(system, q, qd, t, args)
-    qdd, lam, singular = _solve_accelerations(system, q, qd, t, args, correction)
-    # A singular KKT matrix makes the step fail (NaN rejected by the controller);
-    # the status is recovered afterwards at the saved states.
-    qdd = jnp.where(singular, jnp.nan, qdd)
+    # A singular KKT matrix makes the step fail: `qdd` is then NaN, which the
+    # controller rejects (set inside the solve's branches, where XLA fuses it: a
+    # `where` here cost a two-cylinder trajectory 3.9 against 3.4 us per step); the
+    # status is recovered afterwards at the saved states.
+    qdd, lam, _ = _solve_accelerations(system, q, qd, t, args, correction)
     return (qd, qdd), lam
 
 

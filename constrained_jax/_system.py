@@ -476,15 +476,19 @@ class LagrangianSystem(eqx.Module):
     def _solve_accelerations_in_loop(self, q, qd, t, args, bias_correction=None):
         """`solve_accelerations` as `simulate`'s vector field calls it: the same
         answers, with a missed pattern refused by masking the solution (see
-        `_solve`)."""
+        `_solve`), and `qddot` NaN (not zero) where `singular`, which makes the
+        step fail."""
         qdd, lam, singular, mismatch = self._solve(
-            q, qd, t, args, bias_correction, refuse_by_nan=False
+            q, qd, t, args, bias_correction, refuse_by_nan=False, nan_x=True
         )
         return qdd, lam, singular | mismatch
 
-    def _solve(self, q, qd, t, args, bias_correction=None, refuse_by_nan=True):
+    def _solve(
+        self, q, qd, t, args, bias_correction=None, refuse_by_nan=True, nan_x=False
+    ):
         """`(qddot, lambda, singular, mismatch)`: `mismatch` is the run-time check of
-        the sparsity patterns (see `_equations`); both flags zero the solution.
+        the sparsity patterns (see `_equations`); both flags zero the solution
+        (`qddot` is NaN instead with `nan_x`).
 
         A pattern that missed an entry refuses the solve, in one of two ways that
         give the same answers and differ only in what XLA makes of them. With
@@ -505,10 +509,15 @@ class LagrangianSystem(eqx.Module):
         if by_nan:
             rhs = jnp.where(mismatch, jnp.nan, rhs)
         # Differentiated by the implicit rule, not through the elimination.
-        qdd, lam, singular = kkt_derivative.solve(solver, mass, jac, rhs, bias)
+        qdd, lam, singular = kkt_derivative.solve(
+            solver, mass, jac, rhs, bias, nan_x=nan_x
+        )
         if not by_nan:
             n = qdd.shape[0]
-            sol = jnp.where(mismatch, 0.0, jnp.concatenate([qdd, lam]))
+            fill = jnp.concatenate(
+                [jnp.full_like(qdd, jnp.nan if nan_x else 0.0), jnp.zeros_like(lam)]
+            )
+            sol = jnp.where(mismatch, fill, jnp.concatenate([qdd, lam]))
             qdd, lam = sol[:n], sol[n:]
         return qdd, lam, singular, mismatch
 

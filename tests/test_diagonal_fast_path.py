@@ -291,3 +291,98 @@ def test_derivatives(zero_mass):
     np.testing.assert_allclose(
         hessian, programs.hessian_lu(theta), rtol=1e-7, atol=1e-8
     )
+
+
+def _nan_x_problems():
+    """Solvable and singular systems, through the fast path and the general method
+    (a coupled zero mass): `[(name, problem, singular)]`."""
+    rng = np.random.default_rng(6)
+    mass, jac, rhs, bias = _problem(rng, 3, 2)
+    redundant = jnp.stack([jac[0], 2 * jac[0]])
+    coupled = np.array([[1, 0, 0], [0, 1, 1]], bool)
+    zero = _problem(rng, 3, 2, coupled, masses=[1.0, 2.0, 0.0])
+    # The coupled zero mass with a redundant pair of rows.
+    zero_redundant = SparseMatrix.from_dense(
+        jnp.asarray([[0.0, 1.0, 1.0], [0.0, 2.0, 2.0]]), np.array([[0, 1, 1]] * 2, bool)
+    )
+    return [
+        ("fast", (mass, jac, rhs, bias), False),
+        ("fast, redundant", (mass, redundant, rhs, bias), True),
+        ("fast, NaN", (mass, jac, rhs.at[0].set(jnp.nan), bias), True),
+        ("general", zero, False),
+        ("general, redundant", (zero[0], zero_redundant, zero[2], zero[3]), True),
+    ]
+
+
+def _assert_nan_x(out, ref, singular):
+    """`out` is `ref` (zeros where singular) with `x` NaN where singular."""
+    x, lam, flag = (np.asarray(v) for v in out)
+    x_ref, lam_ref, flag_ref = (np.asarray(v) for v in ref)
+    assert bool(flag) == bool(flag_ref) == singular
+    np.testing.assert_array_equal(lam, lam_ref)
+    if singular:
+        assert np.all(np.isnan(x)) and np.all(lam == 0)
+    else:
+        np.testing.assert_array_equal(x, x_ref)  # bit for bit
+
+
+@pytest.mark.parametrize(
+    "solver", [AUTO, cjax.RangeSpaceLDL(), cjax.FullKKTLU()], ids=type
+)
+def test_nan_x_only_where_singular(solver):
+    """`_solve_nan_x` (what `simulate`'s vector field calls, through
+    `kkt_derivative.solve(..., nan_x=True)`) is `solve`, with `x` NaN instead of
+    zero where singular: alone and in a batch that mixes both, through the fast path
+    (set inside its branch) and the general method."""
+    from constrained_jax._solver import kkt_derivative
+
+    nan_x = jax.jit(lambda *p: kkt_derivative.solve(solver, *p, nan_x=True))
+    plain = jax.jit(solver.solve)
+    batched_nan_x = jax.jit(jax.vmap(nan_x, in_axes=(None, None, 0, None)))
+    batched = jax.jit(jax.vmap(plain, in_axes=(None, None, 0, None)))
+    for _, problem, singular in _nan_x_problems():
+        _assert_nan_x(nan_x(*problem), plain(*problem), singular)
+        mass, jac, rhs, bias = problem
+        rhs_b = jnp.stack([rhs, rhs.at[0].set(jnp.nan), 2 * rhs])
+        out = batched_nan_x(mass, jac, rhs_b, bias)
+        ref = batched(mass, jac, rhs_b, bias)
+        for i, singular_i in enumerate((singular, True, singular)):
+            pick = lambda t, i=i: jax.tree.map(lambda v: v[i], t)
+            _assert_nan_x(pick(out), pick(ref), singular_i)
+
+
+def test_nan_x_derivatives():
+    """The derivatives of the NaN-filled solve are those of `solve` (no NaN enters
+    the tangents or cotangents, also at a singular system, where they are zero)."""
+    from constrained_jax._solver import kkt_derivative
+
+    pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
+
+    def loss(theta, fill):
+        masses, jac = theta[:3], theta[3:9].reshape(2, 3)
+        mass = SparseMatrix(masses, (0, 1, 2), (0, 1, 2), (3, 3))
+        jac = SparseMatrix.from_dense(jnp.where(pattern, jac, 0.0), pattern)
+        rhs, bias = theta[9:12], theta[12:14]
+        if fill == "system":
+            x, lam, s = kkt_derivative.solve(AUTO, mass, jac, rhs, bias, nan_x=True)
+        elif fill == "solver":
+            x, lam, s = AUTO._solve_nan_x(mass, jac, rhs, bias)
+        else:
+            x, lam, s = AUTO.solve(mass, jac, rhs, bias)
+        x = jnp.where(s, 0.0, x)
+        return jnp.sum(jnp.sin(x)) + jnp.sum(lam**2)
+
+    rng = np.random.default_rng(7)
+    theta = jnp.asarray(rng.normal(size=14)).at[:3].set(jnp.array([1.0, 2.0, 0.7]))
+    # Singular: the two rows of A along the same direction, with a NaN force.
+    singular = theta.at[3:9].set(jnp.array([1.0, 0.0, 0.0, 2.0, 0.0, 0.0]))
+    singular = singular.at[9].set(jnp.nan)
+    grads = {
+        fill: jax.jit(jax.vmap(jax.grad(functools.partial(loss, fill=fill))))
+        for fill in ("plain", "system", "solver")
+    }
+    thetas = jnp.stack([theta, theta.at[2].set(0.0), singular])
+    ref = grads["plain"](thetas)
+    assert np.all(np.isfinite(ref[:2])) and np.all(ref[2] == 0)
+    for fill in ("system", "solver"):
+        np.testing.assert_allclose(grads[fill](thetas), ref, rtol=1e-13, atol=1e-14)

@@ -118,12 +118,13 @@ def stack_by_select(values: list) -> Array:
     return out
 
 
-def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack):
+def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack, nan_x=False):
     """The fast path, assuming `needs_general` is false: `(x, lambda, singular)`.
 
     `singular` flags a vanishing pivot of `A D^-1 A^T` (below `10 k eps` of its
     largest entry: redundant constraints), a force on a massless coordinate that
-    nothing couples to (`|f_i| > 100 n eps max|f|`) and a non-finite result.
+    nothing couples to (`|f_i| > 100 n eps max|f|`) and a non-finite result; `x` and
+    `lambda` are then zeros (`x` NaN with `nan_x`, see `diagonal_solve`).
     `stack` assembles `x` and `lambda` from their entries (`stack_by_select` under
     `jax.vmap`).
     """
@@ -175,9 +176,20 @@ def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack):
     # separate passes over the batch.
     finite = [jnp.isfinite(v) for v in x + lam]
     singular = singular | jnp.invert(functools.reduce(jnp.logical_and, finite))
-    x = stack([jnp.where(singular, zero, v) for v in x])
+    fill = jnp.full_like(zero, jnp.nan) if nan_x else zero
+    x = stack([jnp.where(singular, fill, v) for v in x])
     lam = stack([jnp.where(singular, zero, v) for v in lam]) if k else zeros_lam
     return x, lam, singular
+
+
+def nan_on_singular(solve):
+    """`solve`, with `x` NaN (not zero) where the solve is `singular`."""
+
+    def filled(*args):
+        x, lam, singular = solve(*args)
+        return jnp.where(singular, jnp.nan, x), lam, singular
+
+    return filled
 
 
 def _batched(fn, axis_size, in_batched, args):
@@ -215,10 +227,16 @@ def _batch_last(args, in_batched):
     return moved, back
 
 
-def diagonal_solve(mass, jac, rhs, bias, general):
+def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
     """Solves the saddle-point system for a diagonal `SparseMatrix` `mass`: the fast
     path where it applies, else `general(mass, jac, rhs, bias)`, one `lax.cond` per
     call (per batch under `jax.vmap`).
+
+    With `nan_x`, a `singular` solve has `x` NaN instead of zero (as `simulate`'s
+    vector field wants it, to reject the step): set inside the branches, where XLA
+    fuses it into the solve, instead of by a `where` on the `lax.cond`'s output (a
+    kernel more per call, and more kernels in the branches, which then output the
+    flag apart: see `AbstractSaddlePointSolver._solve_nan_x`).
 
     Differentiable in forward and reverse mode: the tangents solve the same system
     (`lax.custom_linear_solve`, so that they transpose). On a free gauge coordinate
@@ -228,13 +246,16 @@ def diagonal_solve(mass, jac, rhs, bias, general):
     massless coordinate), which makes the map `P S P` and its transpose `P S^T P`.
     """
     n = rhs.shape[0]
+    fast_path = functools.partial(diagonal_range_space, nan_x=nan_x)
+    if nan_x:
+        general = nan_on_singular(general)
 
     @jax.custom_batching.custom_vmap
     def core(mass, jac, rhs, bias):
         return lax.cond(
             needs_general(mass, jac, n),
             general,
-            diagonal_range_space,
+            fast_path,
             mass,
             jac,
             rhs,
@@ -247,7 +268,7 @@ def diagonal_solve(mass, jac, rhs, bias, general):
         flags = _batched(
             lambda m, a: needs_general(m, a, n), axis_size, in_batched[:2], args[:2]
         )
-        fast = functools.partial(diagonal_range_space, stack=stack_by_select)
+        fast = functools.partial(fast_path, stack=stack_by_select)
         # The batched operands cross into the `lax.cond` with the batch axis last:
         # the layout in which XLA:CPU computes them (each entry a contiguous run over
         # the batch), so that they need no transposing copy in the branch (see
@@ -269,7 +290,10 @@ def diagonal_solve(mass, jac, rhs, bias, general):
     def _(primals, tangents):
         mass, jac, rhs, bias = primals
         dmass, djac, drhs, dbias = tangents
-        x, lam, singular = solve(mass, jac, rhs, bias)
+        x_out, lam, singular = solve(mass, jac, rhs, bias)
+        # The solution with zeros where singular (`nan_x` fills `x` with NaN), so
+        # that no NaN enters the tangents (nor, transposed, the cotangents).
+        x = jnp.where(singular, 0.0, x_out) if nan_x else x_out
         # K z = r, K = [[M, -A^T], [A, 0]]: K dz = dr - dK z.
         dr = jnp.concatenate(
             [
@@ -294,13 +318,16 @@ def diagonal_solve(mass, jac, rhs, bias, general):
         else:
             project = lambda r: r
 
+        def zeroed(x_, lam_, singular_):
+            return jnp.where(singular_, 0.0, x_) if nan_x else x_, lam_
+
         def kkt_solve(_, r):
-            dx, dlam, _ = solve(mass, jac, project(r[:n]), -r[n:])
+            dx, dlam = zeroed(*solve(mass, jac, project(r[:n]), -r[n:]))
             return jnp.concatenate([dx, dlam])
 
         def kkt_transpose_solve(_, r):
             # K^T = [[M, A^T], [-A, 0]]: K^T w = r is K (w1, -w2) = (r1, -r2).
-            w1, w2, _ = solve(mass, jac, project(r[:n]), r[n:])
+            w1, w2 = zeroed(*solve(mass, jac, project(r[:n]), r[n:]))
             return jnp.concatenate([w1, -w2])
 
         dz = lax.custom_linear_solve(
@@ -308,6 +335,6 @@ def diagonal_solve(mass, jac, rhs, bias, general):
         )
         dz = jnp.where(singular, 0.0, dz)
         dsingular = np.zeros(np.shape(singular), jax.dtypes.float0)
-        return (x, lam, singular), (dz[:n], dz[n:], dsingular)
+        return (x_out, lam, singular), (dz[:n], dz[n:], dsingular)
 
     return solve(mass, jac, rhs, bias)

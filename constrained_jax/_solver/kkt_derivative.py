@@ -40,7 +40,12 @@ from .sparse import matvec as _matvec
 
 
 def solve(
-    solver: AbstractSaddlePointSolver, mass, jac, rhs: Float[Array, " n"], bias
+    solver: AbstractSaddlePointSolver,
+    mass,
+    jac,
+    rhs: Float[Array, " n"],
+    bias,
+    nan_x: bool = False,
 ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
     """`solver.solve(mass, jac, rhs, bias)`, differentiated by the implicit rule (see
     the module's docstring) instead of through the elimination.
@@ -50,19 +55,22 @@ def solve(
     - `solver`: a saddle-point solver (its `solve` is used as a black box).
     - `mass`, `jac`: `M` (`n x n`) and `A` (`k x n`), dense or `SparseMatrix`es.
     - `rhs`, `bias`: `f` (shape `(n,)`) and `b` (shape `(k,)`).
+    - `nan_x`: a `singular` solve has `x` NaN instead of zero (`solver._solve_nan_x`).
 
     **Returns:** `(x, lambda, singular)`, as `solver.solve`.
     """
-    return _solve(solver, mass, jac, rhs, bias)
+    return _solve(solver, nan_x, mass, jac, rhs, bias)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _solve(solver, mass, jac, rhs, bias):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _solve(solver, nan_x, mass, jac, rhs, bias):
+    if nan_x:
+        return solver._solve_nan_x(mass, jac, rhs, bias)
     return solver.solve(mass, jac, rhs, bias)
 
 
 @_solve.defjvp
-def _solve_jvp(solver, primals, tangents):
+def _solve_jvp(solver, nan_x, primals, tangents):
     mass, jac, rhs, bias = primals
     d_mass, d_jac, d_rhs, d_bias = tangents
 
@@ -77,4 +85,6 @@ def _solve_jvp(solver, primals, tangents):
     dx, dlam = linear(tangent_rhs, tangent_bias)
     dx, dlam = (jnp.where(singular, 0.0, d) for d in (dx, dlam))
     d_singular = np.zeros(singular.shape, jax.dtypes.float0)
+    if nan_x:
+        x = jnp.where(singular, jnp.nan, x)
     return (x, lam, singular), (dx, dlam, d_singular)
