@@ -18,6 +18,9 @@ Cases (float64, after compilation):
 - `sim release 1`, `sim release vmap 64`: the two cylinders with the contact
   unilateral over 3 s (release, then free flight), one run and a vmap over 64 angles.
 - `sim cylinders attached 1`: the two cylinders attached (no release) over 0.8 s.
+- `sim pendulum 20s, traced args`, `sim cylinders attached 1, traced args`: the same
+  runs with `args` an argument of the jitted function (the `sim` rows above close
+  over them: constants, which XLA folds into the program).
 - `extremize 10k`: `jit(vmap(extremize))` of 10,000 cylinder-volume problems.
 - `functional Chebyshev(32)`, `functional PiecewiseLinear(1001)`: the catenary from
   the scene's parabola start.
@@ -103,6 +106,20 @@ def cases(cj) -> dict:
 
     out["sim pendulum 20s"] = (jax.jit(pendulum_run), (jnp.asarray(1.0),))
 
+    def pendulum_traced(theta0, args):
+        q0, qd0 = pend.state(theta0, jnp.zeros_like(theta0), args)
+        saveat = cj.SaveAt(t1=True, multipliers=False, energy=False, violation=False)
+        traj = cj.simulate(
+            p_sys, (0.0, 20.0), q0, qd0, args, solver=diffrax.Tsit5(),
+            stepsize_controller=controller, saveat=saveat,
+        )  # fmt: skip
+        return traj.q[-1]
+
+    out["sim pendulum 20s, traced args"] = (
+        jax.jit(pendulum_traced),
+        (jnp.asarray(1.0), p_args),
+    )
+
     def cylinders_run(system, t1):
         """One run of the two cylinders from rest at `theta0`, the state at `t1`."""
 
@@ -120,6 +137,19 @@ def cases(cj) -> dict:
     attached_run = cylinders_run(cyl.system(), 0.8)
     out["sim release 1"] = (jax.jit(release_run), (jnp.asarray(0.3),))
     out["sim cylinders attached 1"] = (jax.jit(attached_run), (jnp.asarray(0.3),))
+
+    def attached_traced(theta0, args):
+        q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), args)
+        traj = cj.simulate(
+            cyl.system(), (0.0, 0.8), q0, qd0, args, solver=diffrax.Tsit5(),
+            stepsize_controller=controller, saveat=cj.SaveAt(t1=True),
+        )  # fmt: skip
+        return traj.q[-1]
+
+    out["sim cylinders attached 1, traced args"] = (
+        jax.jit(attached_traced),
+        (jnp.asarray(0.3), c_args),
+    )
     out["sim release vmap 64"] = (
         jax.jit(jax.vmap(release_run)),
         (jnp.linspace(0.2, 0.5, 64),),
