@@ -145,6 +145,32 @@ def reciprocals(mass, jac, n: int) -> tuple[list, list]:
     return inv, small
 
 
+def _reciprocal_vector(mass, jac, n: int):
+    """`reciprocals` as one vector: `(values, index, small)`, `inv[i]` being
+    `values[index[i]]` (`None` where `index[i]` is). One divide for all the masses,
+    where the scalars of `reciprocals` are each a kernel of XLA's (a divide feeding
+    two fusions is not duplicated)."""
+    d = _diagonal(mass, n)
+    coupled = coupled_columns(jac, n)
+    gauges = free_gauges(mass, jac, n)
+    present = [i for i in range(n) if d[i] is not None]
+    index: list = [None] * n
+    for p, i in enumerate(present):
+        index[i] = p
+    small = [None if coupled[i] else jnp.asarray(gauges[i]) for i in range(n)]
+    if not present:
+        return None, index, small
+    values = jnp.stack([d[i] for i in present])
+    flags = [
+        jnp.zeros((), bool) if small[i] is None else small[i] for i in present
+    ]
+    if all(small[i] is None for i in present):
+        return 1 / values, index, small
+    flag = jnp.stack(flags)
+    inv = jnp.where(flag, jnp.zeros_like(values), 1 / jnp.where(flag, 1, values))
+    return inv, index, small
+
+
 def diagonal_range_space(
     mass, jac, rhs, bias, stack=jnp.stack, nan_x=False, recip=None
 ):
@@ -268,17 +294,22 @@ def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
     if nan_x:
         general = nan_on_singular(general)
 
-    def fast_branch(mass, recip, jac, rhs, bias):
-        del mass
-        jac, rhs, bias, recip = lax.optimization_barrier((jac, rhs, bias, recip))
-        return fast_path(None, jac, rhs, bias, recip=recip)
-
     def general_branch(mass, recip, jac, rhs, bias):
         del recip
         return general(*lax.optimization_barrier((mass, jac, rhs, bias)))
 
     @jax.custom_batching.custom_vmap
     def core(mass, jac, rhs, bias):
+        values, index, small = _reciprocal_vector(mass, jac, n)
+
+        def fast_branch(mass, recip, jac, rhs, bias):
+            del mass
+            jac, rhs, bias, (values, small) = lax.optimization_barrier(
+                (jac, rhs, bias, recip)
+            )
+            inv = [None if p is None else values[p] for p in index]
+            return fast_path(None, jac, rhs, bias, recip=(inv, small))
+
         # The reciprocals of the masses before the `lax.cond`, where XLA hoists
         # those that depend on `args` only out of `simulate`'s loop (or folds them,
         # for constant `args`); the operands cross into the branches behind
@@ -290,7 +321,7 @@ def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
             general_branch,
             fast_branch,
             mass,
-            reciprocals(mass, jac, n),
+            (values, small),
             jac,
             rhs,
             bias,
