@@ -1,5 +1,7 @@
 """Simulation of constrained systems: closed forms, invariants, drift, convergence."""
 
+import functools
+
 import diffrax
 import equinox as eqx
 import jax
@@ -275,6 +277,46 @@ def test_singular_dynamics_is_reported():
         assert traj.result == cjax.RESULTS.singular_dynamics
     with pytest.raises(eqx.EquinoxRuntimeError, match="singular"):
         cjax.simulate(system, (0.0, 1.0), q0, qd0, args, max_steps=64)
+
+
+@pytest.mark.parametrize("stabilization", [cjax.Unstabilized(), cjax.Projection()])
+def test_saved_multipliers_at_t1_alone(stabilization):
+    """`SaveAt(t1=True)` computes the multipliers and the singular check with one
+    unbatched solve (the saved state is the last one reached): the same as the
+    batched path of `SaveAt(ts=[t1])`, for a run that gets to `t1`, for one that stops
+    short (`max_steps`: not reached, zeros) and for one refused (`invalid_input`);
+    against the closed-form normal force too."""
+    args = cyl2.default_args(alpha=0.5)
+
+    @functools.partial(jax.jit, static_argnames=("alone", "max_steps"))
+    def run(theta0, args, alone, max_steps=4096):
+        q0, qd0 = cyl2.state(theta0, jnp.zeros_like(theta0), args)
+        saveat = cjax.SaveAt(t1=True) if alone else cjax.SaveAt(ts=jnp.array([0.8]))
+        return cjax.simulate(
+            cyl2.system(), (0.0, 0.8), q0, qd0, args, stabilization=stabilization,
+            stepsize_controller=TIGHT, saveat=saveat, max_steps=max_steps,
+            throw=False,
+        )  # fmt: skip
+
+    theta0 = jnp.asarray(0.2)
+    for max_steps, arg in ((4096, theta0), (3, theta0), (4096, jnp.nan)):
+        alone = run(arg, args, True, max_steps)
+        batched = run(arg, args, False, max_steps)
+        assert alone.result == batched.result
+        np.testing.assert_allclose(
+            alone.multipliers, batched.multipliers, rtol=1e-12, atol=1e-12
+        )
+        np.testing.assert_allclose(
+            alone.constraint_forces, batched.constraint_forces, rtol=1e-12, atol=1e-12
+        )
+    assert run(theta0, args, True, 3).result == cjax.RESULTS.max_steps_reached
+    assert run(jnp.nan, args, True).result == cjax.RESULTS.invalid_input
+    ok = run(theta0, args, True)
+    assert ok.result == cjax.RESULTS.successful
+    theta = ok.q[-1, 1]
+    np.testing.assert_allclose(
+        ok.multipliers[-1, 0], cyl2.normal_force(theta, theta0, args), atol=1e-7
+    )
 
 
 def test_gradient_wrt_initial_state_matches_finite_differences():
