@@ -1721,8 +1721,8 @@ def _simulate(
             # The one saved state is the last state reached, if the run got to `t1`
             # (else it is inf): one solve, unbatched, serves both. Under `jax.vmap`
             # the solve is a copy of its own, with the batch's `lax.cond` and both
-            # branches: about a quarter of the program (`SaveAt(t1=True)`, the
-            # default, compiled 1.65 -> 1.3 s for the two cylinders,
+            # branches (`SaveAt(t1=True)`, the default: the first `jit(simulate)` of
+            # the two cylinders 1.64 -> 1.35 s in a fresh process,
             # `benchmarks/README.md`).
             got_there = jnp.all(jnp.isfinite(q[0]))
             point = jax.tree.map(
