@@ -11,8 +11,8 @@ alternating between revision A and B, each exported with `git archive` (as in
 
 Cases:
 
-- `cylinders`: `simulate` of the two cylinders attached (Tsit5, 9 saves with the
-  multipliers), `compile_time.py`'s (a);
+- `cylinders`: `simulate` of the two cylinders attached (Tsit5, `SaveAt(t1=True)`
+  with everything derived), `compile_time.py`'s (a);
 - `pendulum`: the tour's pendulum program, `compile_time.py`'s (c);
 - `chain4`, `chain4-lapack`: one trajectory of the 4-link chain (`chain.py`) with the
   default saddle-point solver and with LAPACK's LU (`FullKKTLU(unroll_max=0)`), in one
