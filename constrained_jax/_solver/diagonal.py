@@ -123,26 +123,8 @@ def reciprocals(mass, jac, n: int) -> tuple[list, list]:
     zero that `A` does not couple) and `small[i]`, for a coordinate that `A` does not
     couple, whether it is a free gauge (its mass vanishes; its reciprocal is then 0),
     `None` for a coupled one."""
-    d = _diagonal(mass, n)
-    coupled = coupled_columns(jac, n)
-    gauges = free_gauges(mass, jac, n)
-    inv: list = []
-    small: list = []
-    for i in range(n):
-        if coupled[i]:
-            inv.append(1 / d[i])
-            small.append(None)
-            continue
-        # A free coordinate: its reciprocal is 0 when its mass vanishes (a free
-        # gauge), which is consistent only without a force on it.
-        flag = jnp.asarray(gauges[i])
-        small.append(flag)
-        if d[i] is not None:
-            zero = jnp.zeros_like(d[i])
-            inv.append(jnp.where(flag, zero, 1 / jnp.where(flag, 1, d[i])))
-        else:
-            inv.append(None)
-    return inv, small
+    values, index, small = _reciprocal_vector(mass, jac, n)
+    return [None if p is None else values[p] for p in index], small
 
 
 def _reciprocal_vector(mass, jac, n: int):
