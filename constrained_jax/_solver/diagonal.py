@@ -31,6 +31,7 @@ from .saddle_point import (
     _minus_sum,
     ldl_factor_unrolled,
     ldl_solve_unrolled,
+    nan_on_singular,
 )
 from .sparse import matvec as _mul, SparseMatrix
 
@@ -143,10 +144,11 @@ def _reciprocal_vector(mass, jac, n: int):
     if not present:
         return None, index, small
     values = jnp.stack([d[i] for i in present])
-    flags = [jnp.zeros((), bool) if small[i] is None else small[i] for i in present]
     if all(small[i] is None for i in present):
         return 1 / values, index, small
-    flag = jnp.stack(flags)
+    flag = jnp.stack(
+        [jnp.zeros((), bool) if small[i] is None else small[i] for i in present]
+    )
     inv = jnp.where(flag, jnp.zeros_like(values), 1 / jnp.where(flag, 1, values))
     return inv, index, small
 
@@ -204,16 +206,6 @@ def diagonal_range_space(
     x = stack([jnp.where(singular, fill, v) for v in x])
     lam = stack([jnp.where(singular, zero, v) for v in lam]) if k else zeros_lam
     return x, lam, singular
-
-
-def nan_on_singular(solve):
-    """`solve`, with `x` NaN (not zero) where the solve is `singular`."""
-
-    def filled(*args):
-        x, lam, singular = solve(*args)
-        return jnp.where(singular, jnp.nan, x), lam, singular
-
-    return filled
 
 
 def _batched(fn, axis_size, in_batched, args):

@@ -87,8 +87,17 @@ class AbstractSaddlePointSolver(eqx.Module):
         may set it inside its branches, where XLA fuses it into the solve
         (`Automatic`: a single two-cylinder trajectory 3.9 -> 3.4 us per step), not
         as a `where` on the branch's output."""
-        x, lam, singular = self.solve(mass, jac, rhs, bias)
+        return nan_on_singular(self.solve)(mass, jac, rhs, bias)
+
+
+def nan_on_singular(solve):
+    """`solve`, with `x` NaN (not zero) where the solve is `singular`."""
+
+    def filled(*args):
+        x, lam, singular = solve(*args)
         return jnp.where(singular, jnp.nan, x), lam, singular
+
+    return filled
 
 
 def _lu_solve_gauge(lu, perm, zero, b, unrolled: bool):
@@ -577,10 +586,7 @@ class Automatic(AbstractSaddlePointSolver):
             from .diagonal import diagonal_solve
 
             return diagonal_solve(mass, jac, rhs, bias, general, nan_x=nan_x)
-        x, lam, singular = general(mass, jac, rhs, bias)
-        if nan_x:
-            x = jnp.where(singular, jnp.nan, x)
-        return x, lam, singular
+        return (nan_on_singular(general) if nan_x else general)(mass, jac, rhs, bias)
 
     def _diagonal_fast_path(self, mass, jac, n: int, k: int) -> bool:
         """Whether the unrolled diagonal range-space method applies: a structurally
