@@ -17,6 +17,8 @@ Cases (float64, after compilation):
   pendulum over 20 s.
 - `sim release 1`, `sim release vmap 64`: the two cylinders with the contact
   unilateral over 3 s (release, then free flight), one run and a vmap over 64 angles.
+- `sim release tour, 121 saves`: the tour's two-cylinder program (`compile_time.py`'s
+  (b)): the release, 121 saves with the multipliers, `args` traced.
 - `sim cylinders attached 1`: the two cylinders attached (no release) over 0.8 s.
 - `sim pendulum 20s, traced args`, `sim cylinders attached 1, traced args`: the same
   runs with `args` an argument of the jitted function (the `sim` rows above close
@@ -142,6 +144,22 @@ def cases(cj) -> dict:
     out["sim release vmap 64"] = (
         jax.jit(jax.vmap(release_run)),
         (jnp.linspace(0.2, 0.5, 64),),
+    )
+    # The tour's release program (`tour/two_cylinders.py`, written again here: the
+    # tour imports `constrained_jax` by name): 121 saves with the multipliers.
+    def tour_run(theta0, args):
+        q0, qd0 = cyl.state(theta0, jnp.zeros_like(theta0), args)
+        ts = cyl.detachment_time(theta0, args) * jnp.linspace(0.0, 1.2, 121)
+        return cj.simulate(
+            cyl.contact_system(), (0.0, ts[-1]), q0, qd0, args,
+            saveat=cj.SaveAt(ts=ts, energy=False, violation=False),
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            throw=False,
+        )  # fmt: skip
+
+    out["sim release tour, 121 saves"] = (
+        jax.jit(tour_run),
+        (jnp.asarray(0.2), cyl.default_args()),
     )
 
     b = jnp.asarray(np.exp(rng.uniform(np.log(1e-2), np.log(1e2), num)))

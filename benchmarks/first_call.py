@@ -14,6 +14,10 @@ Cases:
 - `cylinders`: `simulate` of the two cylinders attached (Tsit5, `SaveAt(t1=True)`
   with everything derived), `compile_time.py`'s (a);
 - `pendulum`: the tour's pendulum program, `compile_time.py`'s (c);
+- `release`: the tour's two-cylinder program with the release, `compile_time.py`'s
+  (b);
+- `floor`: `diffeqsolve` of the hand-written two-cylinder field, `compile_time.py`'s
+  floor (the same in both revisions: it shows the machine's drift);
 - `chain4`, `chain4-lapack`: one trajectory of the 4-link chain (`chain.py`) with the
   default saddle-point solver and with LAPACK's LU (`FullKKTLU(unroll_max=0)`), in one
   process, that order (`targets.py`'s compile ratio).
@@ -69,6 +73,10 @@ if case == "cylinders":
     out[case] = first(compile_time.CASES["a"][1])
 elif case == "pendulum":
     out[case] = first(compile_time.CASES["c"][1])
+elif case == "release":
+    out[case] = first(compile_time.CASES["b"][1])
+elif case == "floor":
+    out[case] = first(compile_time.CASES["floor"][1])
 else:
     default = chain.trajectory(4, None, 3)
     lapack = chain.trajectory(4, cjax.FullKKTLU(unroll_max=0), 3)
