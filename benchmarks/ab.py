@@ -145,6 +145,7 @@ def cases(cj) -> dict:
         jax.jit(jax.vmap(release_run)),
         (jnp.linspace(0.2, 0.5, 64),),
     )
+
     # The tour's release program (`tour/two_cylinders.py`, written again here: the
     # tour imports `constrained_jax` by name): 121 saves with the multipliers.
     def tour_run(theta0, args):
