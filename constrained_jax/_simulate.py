@@ -1733,11 +1733,10 @@ def _simulate(
             return each(q, qd, ts), None
         if only_t1 and phases is None:
             # The one saved state is the last state reached, if the run got to `t1`
-            # (else it is inf): one solve, unbatched, serves both. Under `jax.vmap`
-            # the solve is a copy of its own, with the batch's `lax.cond` and both
-            # branches (`SaveAt(t1=True)`, the default: the first `jit(simulate)` of
-            # the two cylinders 1.64 -> 1.35 s in a fresh process,
-            # `benchmarks/README.md`).
+            # (else it is inf): one solve serves both (`SaveAt(t1=True)`, the
+            # default). Against the batched solve over the two points it replaced:
+            # the first `jit(simulate)` of the two cylinders 1.64 -> 1.35 s in a
+            # fresh process; against `each` over them, 2-3 % (`benchmarks/README.md`).
             got_there = jnp.all(jnp.isfinite(q[0]))
             point = jax.tree.map(
                 lambda a, b: jnp.where(got_there, a, b),
