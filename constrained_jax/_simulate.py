@@ -808,6 +808,26 @@ class _WatchedSolver(AbstractForwardingSolver):
         return y1, y_error, dense_info, (inner_state, w1), result
 
 
+def _each(fn, *points, loop: bool = True):
+    """`fn` at each of the saved `points` (arrays with a leading axis of saves): a
+    plain call for one save; else with `loop` a loop around the unbatched function
+    (`lax.map`), without it `jax.vmap`.
+
+    The loop for the KKT solve and `A`: a batched KKT solve is a program of its own,
+    with the batch's `lax.cond` and both branches, to trace and compile, while the
+    steps have traced the unbatched one already (the tour's two cylinders, 121 saves
+    in two phases: the first call 4.5 -> 3.7 s; the run 2 % slower, and at 1,000
+    saves 0.9 -> 1.5 ms with XLA's defaults, 0.30 -> 0.32 ms with
+    `use_loop_kernels()`, `benchmarks/README.md`). `jax.vmap` for the energy and the
+    residuals, cheap to compile batched and faster so at many saves."""
+    if jax.tree.leaves(points)[0].shape[0] == 1:
+        out = fn(*jax.tree.map(lambda x: x[0], points))
+        return jax.tree.map(lambda x: x[None], out)
+    if loop:
+        return jax.lax.map(lambda point: fn(*point), points)
+    return jax.vmap(fn)(*points)
+
+
 class _Phase(eqx.Module):
     """One diffrax solve (`_run_phase`): the states at the save times, the last state
     reached, and diffrax's result, statistics and event mask."""
@@ -1721,16 +1741,8 @@ def _simulate(
                 lam = jnp.zeros((system_k,), q_.dtype).at[keep_rows].set(lam)
             return lam, singular
 
-        def each(*points):
-            # `lax.map`, not `jax.vmap`: a loop around the unbatched solve, which the
-            # steps have traced already, rather than the batched solve, a program of
-            # its own with the batch's `lax.cond` and both branches (the tour's two
-            # cylinders, 121 saves in two phases: compile 0.4 s less, the run 4%
-            # slower, `benchmarks/README.md`).
-            return jax.lax.map(lambda point: one(*point), points)
-
         if not end:
-            return each(q, qd, ts), None
+            return _each(one, q, qd, ts), None
         if only_t1 and phases is None:
             # The one saved state is the last state reached, if the run got to `t1`
             # (else it is inf): one solve serves both (`SaveAt(t1=True)`, the
@@ -1753,7 +1765,7 @@ def _simulate(
             (q, qd, ts),
             (run.q_end, run.qd_end, run.t_end),
         )
-        lam, singular = each(*points)
+        lam, singular = _each(one, *points)
         return (lam[:-1], singular[:-1]), singular[-1]
 
     # One saved time, `t1` (`SaveAt(t1=True)`, the default).
@@ -1784,20 +1796,29 @@ def _simulate(
             )
             lam = jnp.where(phases.attached[:, None], lam, lam_f)
             singular_saved = jnp.where(phases.attached, singular_saved, singular_f)
+
         # (The released rows of the free phase's multipliers are zero: one product
         # with the full system's `A` serves both phases.)
-        jac = jax.vmap(system.constraint_jacobian, (0, 0, None))(q, ts, args)
+        def constraint_force(q_, t_, lam_):
+            return system.constraint_jacobian(q_, t_, args).T @ lam_
+
         extra["multipliers"] = lam
-        extra["constraint_forces"] = jnp.einsum("tkn,tk->tn", jac, lam)
+        extra["constraint_forces"] = _each(constraint_force, q, ts, lam)
         extra["singular"] = singular_saved
     if saveat.energy:
-        extra["energy"] = jax.vmap(system.energy, (0, 0, 0, None))(q, qd, ts, args)
-    if saveat.violation:
-        extra["position"] = jax.vmap(system.holonomic_residual, (0, 0, None))(
-            q, ts, args
+        extra["energy"] = _each(
+            lambda q_, qd_, t_: system.energy(q_, qd_, t_, args), q, qd, ts, loop=False
         )
-        extra["velocity"] = jax.vmap(system.velocity_residual, (0, 0, 0, None))(
-            q, qd, ts, args
+    if saveat.violation:
+        extra["position"] = _each(
+            lambda q_, t_: system.holonomic_residual(q_, t_, args), q, ts, loop=False
+        )
+        extra["velocity"] = _each(
+            lambda q_, qd_, t_: system.velocity_residual(q_, qd_, t_, args),
+            q,
+            qd,
+            ts,
+            loop=False,
         )
 
     result = run.result
