@@ -813,13 +813,15 @@ def _each(fn, *points, loop: bool = True):
     plain call for one save; else with `loop` a loop around the unbatched function
     (`lax.map`), without it `jax.vmap`.
 
-    The loop for the KKT solve and `A`: a batched KKT solve is a program of its own,
-    with the batch's `lax.cond` and both branches, to trace and compile, while the
-    steps have traced the unbatched one already (the tour's two cylinders, 121 saves
-    in two phases: the first call 4.5 -> 3.7 s; the run 2 % slower, and at 1,000
-    saves 0.9 -> 1.5 ms with XLA's defaults, 0.30 -> 0.32 ms with
-    `use_loop_kernels()`, `benchmarks/README.md`). `jax.vmap` for the energy and the
-    residuals, cheap to compile batched and faster so at many saves."""
+    The loop for the KKT solve: a batched KKT solve is a program of its own, with
+    the batch's `lax.cond` and both branches, to trace and compile, while the steps
+    have traced the unbatched one already (the tour's two cylinders, 121 saves in
+    two phases: the first call 4.5 -> 3.7 s; the run 2 % slower, and at 1,000 saves
+    0.9 -> 1.5 ms with XLA's defaults, 0.30 -> 0.32 ms with `use_loop_kernels()`,
+    `benchmarks/README.md`). `jax.vmap` for `A`, the energy and the residuals, which
+    compile batched about as fast (a loop for `A` made no difference either way).
+    One save, a plain call: the first `jit(simulate)` of the two cylinders
+    (`SaveAt(t1=True)`) 4 % faster than with a `jax.vmap` over one."""
     if jax.tree.leaves(points)[0].shape[0] == 1:
         out = fn(*jax.tree.map(lambda x: x[0], points))
         return jax.tree.map(lambda x: x[None], out)
@@ -1803,7 +1805,7 @@ def _simulate(
             return system.constraint_jacobian(q_, t_, args).T @ lam_
 
         extra["multipliers"] = lam
-        extra["constraint_forces"] = _each(constraint_force, q, ts, lam)
+        extra["constraint_forces"] = _each(constraint_force, q, ts, lam, loop=False)
         extra["singular"] = singular_saved
     if saveat.energy:
         extra["energy"] = _each(
