@@ -118,6 +118,50 @@ def test_two_cylinders_normal_force_along_trajectory(cylinder_run, alpha):
     np.testing.assert_allclose(traj.constraint_forces[:, 0], traj.multipliers[:, 0])
 
 
+def test_derived_quantities_at_saves_are_the_systems(cylinder_run):
+    """What `simulate` derives at the saved states (the multipliers by a loop of the
+    unbatched KKT solve, the rest batched; at a single save by plain calls) is what
+    the system's own methods give at those states."""
+    args = cyl2.default_args(alpha=0.5)
+    system = cyl2.system()
+
+    @jax.jit
+    def one_save(theta0, args):
+        q0, qd0 = cyl2.state(theta0, jnp.zeros_like(theta0), args)
+        return cjax.simulate(
+            system, (0.0, 0.8), q0, qd0, args, stepsize_controller=TIGHT,
+            saveat=cjax.SaveAt(ts=jnp.array([0.5])),
+        )  # fmt: skip
+
+    theta0 = jnp.asarray(0.3)
+    for traj in (cylinder_run(theta0, args), one_save(theta0, args)):
+        assert traj.result == cjax.RESULTS.successful
+        for i in range(traj.ts.shape[0]):
+            q, qd, t = traj.q[i], traj.qd[i], traj.ts[i]
+            _, lam = system.accelerations(q, qd, t, args)
+            np.testing.assert_allclose(traj.multipliers[i], lam, rtol=1e-12)
+            np.testing.assert_allclose(
+                traj.constraint_forces[i],
+                system.constraint_forces(q, qd, t, args),
+                rtol=1e-12,
+                atol=1e-12,
+            )
+            np.testing.assert_allclose(
+                traj.energy[i], system.energy(q, qd, t, args), rtol=1e-13
+            )
+            np.testing.assert_allclose(
+                traj.violation["position"][i],
+                system.holonomic_residual(q, t, args),
+                atol=1e-15,
+            )
+            np.testing.assert_allclose(
+                traj.violation["velocity"][i],
+                system.velocity_residual(q, qd, t, args),
+                atol=1e-15,
+            )
+    assert one_save(theta0, args).multipliers.shape == (1, 2)
+
+
 def test_vmap_matches_loop(cylinder_run):
     args = cyl2.default_args(alpha=0.5)
     thetas = jnp.array([0.1, 0.2, 0.3])
@@ -282,8 +326,9 @@ def test_singular_dynamics_is_reported():
 @pytest.mark.parametrize("stabilization", [cjax.Unstabilized(), cjax.Projection()])
 def test_saved_multipliers_at_t1_alone(stabilization):
     """`SaveAt(t1=True)` computes the multipliers and the singular check with one
-    unbatched solve (the saved state is the last one reached): the same as the
-    batched path of `SaveAt(ts=[t1])`, for a run that gets to `t1`, for one that stops
+    solve (the saved state is the last one reached): the same as the general path of
+    `SaveAt(ts=[t1])` (a solve at the saved state and one at the end state), for a
+    run that gets to `t1`, for one that stops
     short (`max_steps`: not reached, zeros) and for one refused (`invalid_input`);
     against the closed-form normal force too."""
     args = cyl2.default_args(alpha=0.5)
