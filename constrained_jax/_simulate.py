@@ -781,13 +781,9 @@ class _WatchedSolver(AbstractForwardingSolver):
             interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
             ts = t0 + jnp.asarray(theta, dtype) * (t1 - t0)
             sample = lambda t: self.watch(t, interpolation.evaluate(t), args)
-            # Unbatched: the solve traced already for the stages, not a batched copy
-            # of it (with `lax.cond`s turned into selects); Tsit5 has one sample.
-            if theta.size == 1:
-                extra = sample(ts[0])[None]
-            else:
-                extra = jax.lax.map(sample, ts)
-            ws = jnp.concatenate([ws, extra])
+            # Unbatched (`_each`): the solve traced already for the stages, not a
+            # batched copy of it; Tsit5 has one sample.
+            ws = jnp.concatenate([ws, _each(sample, ts)])
         theta = jnp.asarray(np.concatenate([theta_stages, theta]), dtype)
         dipped = (w0 >= 0) & (w1 >= 0) & jnp.any(ws < 0)
         if self.adaptive:
@@ -809,9 +805,9 @@ class _WatchedSolver(AbstractForwardingSolver):
 
 
 def _each(fn, *points, loop: bool = True):
-    """`fn` at each of the saved `points` (arrays with a leading axis of saves): a
-    plain call for one save; else with `loop` a loop around the unbatched function
-    (`lax.map`), without it `jax.vmap`.
+    """`fn` at each of `points` (arrays with a leading axis: the saved states, the
+    samples of `_WatchedSolver`): a plain call for one point; else with `loop` a loop
+    around the unbatched function (`lax.map`), without it `jax.vmap`.
 
     The loop for the KKT solve: a batched KKT solve is a program of its own, with
     the batch's `lax.cond` and both branches, to trace and compile, while the steps
@@ -820,8 +816,9 @@ def _each(fn, *points, loop: bool = True):
     0.9 -> 1.5 ms with XLA's defaults, 0.30 -> 0.32 ms with `use_loop_kernels()`,
     `benchmarks/README.md`). `jax.vmap` for `A`, the energy and the residuals, which
     compile batched about as fast (a loop for `A` made no difference either way).
-    One save, a plain call: the first `jit(simulate)` of the two cylinders
-    (`SaveAt(t1=True)`) 4 % faster than with a `jax.vmap` over one."""
+    One point, a plain call: the first `jit(simulate)` of the two cylinders
+    (`SaveAt(t1=True)`) 4 % faster than with a `jax.vmap` over one, and the tour's
+    release program (one sample per step) about 10 % faster."""
     if jax.tree.leaves(points)[0].shape[0] == 1:
         out = fn(*jax.tree.map(lambda x: x[0], points))
         return jax.tree.map(lambda x: x[None], out)
@@ -1750,7 +1747,7 @@ def _simulate(
             # (else it is inf): one solve serves both (`SaveAt(t1=True)`, the
             # default). Against the batched solve over the two points it replaced:
             # the first `jit(simulate)` of the two cylinders 1.64 -> 1.35 s in a
-            # fresh process; against `each` over them, 2-3 % (`benchmarks/README.md`).
+            # fresh process; against `_each` over them, 2-3 % (`benchmarks/README.md`).
             got_there = jnp.all(jnp.isfinite(q[0]))
             point = jax.tree.map(
                 lambda a, b: jnp.where(got_there, a, b),
