@@ -84,14 +84,25 @@ def time_jax(fn, *args, repeats: int):
     return out, info
 
 
-def time_jax_interleaved(fns: dict, *args, repeats: int):
+def time_jax_interleaved(fns: dict, *args, repeats: int, block: int = 1):
     """Like `time_jax` for several functions of the same inputs, timed in turn.
 
     All are compiled first; then each of the `repeats` rounds calls every function
-    once, so that a slow period of a shared, noisy machine hits all of them alike and
-    the ratios of the medians stay meaningful. Returns `(outputs, infos)`, dicts keyed
-    like `fns`.
+    once (every other round in reverse order), so that a slow period of a shared,
+    noisy machine hits all of them alike and the ratios of the medians stay
+    meaningful. Returns `(outputs, infos)`, dicts keyed like `fns`.
+
+    With `block > 1` each round calls every function `block` times in a row and
+    records all but the first of them: each function's time in its own steady state,
+    as a loop or a sweep calling it sees it. Programs that XLA:CPU splits over its
+    threads need it: a single call's time there depends on the program called before
+    it (the state in which that one left the thread pool). Two batched equations of
+    motion on the 2-core machine, with XLA's threads, read from 0.93x to 1.35x each
+    other's time called singly, depending on what ran before them, against 0.60-0.93x
+    in blocks (`benchmarks/README.md`, seventh session).
     """
+    if block < 1:
+        raise ValueError(f"block must be >= 1, got {block}")
     compiled, infos, outputs = {}, {}, {}
     for name, fn in fns.items():
         t0 = time.perf_counter()
@@ -111,12 +122,18 @@ def time_jax_interleaved(fns: dict, *args, repeats: int):
                 set(re.findall(r"custom_call @(lapack_\w+)", lowered.as_text()))
             ),
         }
-    for _ in range(repeats):
-        for name in fns:
-            start = time.perf_counter()
-            jax.block_until_ready(compiled[name](*args))
-            infos[name]["times_s"].append(time.perf_counter() - start)
+    names = list(fns)
+    for r in range(repeats):
+        # Every other round in reverse order, so that each function follows each
+        # of its neighbours (a call's time can depend on the call before it).
+        for name in names if r % 2 == 0 else names[::-1]:
+            for call in range(block):
+                start = time.perf_counter()
+                jax.block_until_ready(compiled[name](*args))
+                if block == 1 or call > 0:
+                    infos[name]["times_s"].append(time.perf_counter() - start)
     for info in infos.values():
+        info["block"] = block
         info["median_s"] = statistics.median(info["times_s"])
     return outputs, infos
 

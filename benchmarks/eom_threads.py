@@ -13,13 +13,20 @@ processes, alternating, `--rounds` each:
   starts its backend, so that XLA:CPU sizes its thread pool to one).
 
 For each scene (pendulum, two cylinders) and batch size (`--sizes`), the variants are
-called in turn (`time_jax_interleaved`): ours, the checked `accelerations` (which
-raises on a singular system) and the hand-written closed form. Reported: nanoseconds
-per state and the ratio to the hand-written program of the same process; medians over
-the rounds.
+timed in turn (`time_jax_interleaved`), `--block` calls in a row each (10; 1: single
+calls in turn): ours, the checked `accelerations` (which raises on a singular system)
+and the hand-written closed form. Reported: nanoseconds per state and the ratio to the
+hand-written program of the same process; medians over the rounds.
+
+Why blocks: with XLA's threads a single call's time depends on the program called
+before it (the state in which it left the thread pool). Called singly in turn, our
+pendulum program read 0.93x the hand-written one after a third program and 1.05-1.35x
+right after the hand-written one, in the same process; in blocks 0.60-0.93x. Blocks
+time each program in its own steady state, as a sweep calling it sees it (and as the
+first version of `dynamics.py` timed them, each variant's calls in a row).
 
     python benchmarks/eom_threads.py [--sizes 1000,10000,100000,1000000]
-        [--rounds 3] [--out benchmarks/results]
+        [--rounds 3] [--block 10] [--out benchmarks/results]
 
 Writes `eom_threads.json` and `eom_threads.png`. `targets.py` uses `run_child` for its
 one-thread rows.
@@ -35,11 +42,17 @@ from pathlib import Path
 
 
 SETTINGS = ("threads", "one thread")
+# Calls in a row per variant (`time_jax_interleaved`): each program in its own steady
+# state. Called singly in turn, a program's time with XLA's threads depends on the
+# program called before it.
+BLOCK = 10
 VARIANTS = ("autodiff solve_accelerations", "autodiff accelerations (checked)")
 
 
-def _child(sizes: list[int], pin: bool) -> dict:
-    """Runs in a fresh process: `{scene: {size: {variant: ns per state}}}`."""
+def _child(sizes: list[int], pin: bool, block: int = BLOCK) -> dict:
+    """Runs in a fresh process: `{scene: {size: {variant: ns per state}}}`, timed in
+    blocks of `block` calls (`time_jax_interleaved`; `block=1`: single calls in
+    turn)."""
     if pin:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     import jax
@@ -58,10 +71,14 @@ def _child(sizes: list[int], pin: bool) -> dict:
         out[scene] = {}
         for num in sizes:
             q, qd = dynamics.random_states(scene, num)
-            # About 0.2 s of calls per variant, at least 9 rounds.
-            repeats = max(9, min(201, int(2e7 / num)))
+            # About 0.2 s of calls per variant, at least 9 rounds of single calls or
+            # 5 rounds of blocks.
+            if block == 1:
+                repeats = max(9, min(201, int(2e7 / num)))
+            else:
+                repeats = max(5, min(41, int(2e7 / num / block)))
             outputs, infos = time_jax_interleaved(
-                variants, q, qd, args, repeats=repeats
+                variants, q, qd, args, repeats=repeats, block=block
             )
             ref = outputs["hand-written"][0]
             for name in VARIANTS:
@@ -74,11 +91,12 @@ def _child(sizes: list[int], pin: bool) -> dict:
     return out
 
 
-def run_child(sizes: list[int], pin: bool) -> dict:
+def run_child(sizes: list[int], pin: bool, block: int = BLOCK) -> dict:
     """`_child` in a fresh Python process (pinned to one CPU with `pin`). The process
     inherits `XLA_FLAGS`, so a parent that called `cjax.use_fast_compilation()` or
     `cjax.use_loop_kernels()` measures with the same settings."""
     cmd = [sys.executable, __file__, "--child", "--sizes", ",".join(map(str, sizes))]
+    cmd += ["--block", str(block)]
     if pin:
         cmd.append("--pin")
     done = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -152,17 +170,25 @@ def main():
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--pin", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--block",
+        type=int,
+        default=BLOCK,
+        help="calls in a row per variant (1: single calls in turn)",
+    )
     opts = parser.parse_args()
     sizes = [int(s) for s in opts.sizes.split(",")]
     if opts.child:
-        print(json.dumps(_child(sizes, opts.pin)))
+        print(json.dumps(_child(sizes, opts.pin, opts.block)))
         return
     if not hasattr(os, "sched_setaffinity"):
         raise SystemExit("needs os.sched_setaffinity (Linux)")
     runs: dict = {setting: [] for setting in SETTINGS}
     for r in range(opts.rounds):
         for setting in SETTINGS:
-            runs[setting].append(run_child(sizes, pin=setting == "one thread"))
+            runs[setting].append(
+                run_child(sizes, pin=setting == "one thread", block=opts.block)
+            )
             print(f"round {r + 1}, {setting}: done", flush=True)
     cases = {setting: summarize(runs[setting]) for setting in SETTINGS}
     cases["raw"] = runs
