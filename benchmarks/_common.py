@@ -94,12 +94,13 @@ def time_jax_interleaved(fns: dict, *args, repeats: int, block: int = 1):
 
     With `block > 1` each round calls every function `block` times in a row and
     records all but the first of them: each function's time in its own steady state,
-    as a loop or a sweep calling it sees it. Programs that XLA:CPU splits over its
-    threads need it: a single call's time there depends on the program called before
-    it (the state in which that one left the thread pool). Two batched equations of
-    motion on the 2-core machine, with XLA's threads, read from 0.93x to 1.35x each
-    other's time called singly, depending on what ran before them, against 0.60-0.93x
-    in blocks (`benchmarks/README.md`, seventh session).
+    as a loop or a sweep calling it sees it. With XLA's threads a single call's time
+    depends on the program called before it: on the 2-core machine the same batched
+    program, compiled twice and called singly in a fixed order, read 1.05-1.09x the
+    hand-written one right after it and 1.00-1.02x right after itself
+    (`benchmarks/README.md`, seventh session). Neither the reversed rounds nor blocks
+    remove that entirely (identical programs still differ by up to 0.15x within one
+    process): compare such programs over several processes.
     """
     if block < 1:
         raise ValueError(f"block must be >= 1, got {block}")

@@ -19,11 +19,12 @@ and the hand-written closed form. Reported: nanoseconds per state and the ratio 
 hand-written program of the same process; medians over the rounds.
 
 Why blocks: with XLA's threads a single call's time depends on the program called
-before it (the state in which it left the thread pool). Called singly in turn, our
-pendulum program read 0.93x the hand-written one after a third program and 1.05-1.35x
-right after the hand-written one, in the same process; in blocks 0.60-0.93x. Blocks
-time each program in its own steady state, as a sweep calling it sees it (and as the
-first version of `dynamics.py` timed them, each variant's calls in a row).
+before it. Our pendulum program compiled twice, called singly in a fixed order in one
+process, read 1.05-1.09x the hand-written one right after it and 1.00-1.02x right
+after itself. Blocks time each program in its own steady state, as a sweep calling it
+sees it (and as the first version of `dynamics.py` timed them, each variant's calls in
+a row); the rounds alternate their order. Identical programs still differ by up to
+0.15x within one process with XLA's threads: read the medians over processes.
 
     python benchmarks/eom_threads.py [--sizes 1000,10000,100000,1000000]
         [--rounds 3] [--block 10] [--out benchmarks/results]
