@@ -313,9 +313,10 @@ class LagrangianSystem(eqx.Module):
         Conserved when `L`, the constraints and the forces do not depend on `t` and
         the forces do no work (ideal constraints do none).
         """
-        return jnp.dot(qd, self.momentum(q, qd, t, args)) - self.lagrangian(
-            q, qd, t, args
-        )
+        # `L` and `p` from one trace of the Lagrangian (its gradient's forward pass
+        # computes `L` with the same operations as a call).
+        value, p = jax.value_and_grad(self.lagrangian, argnums=1)(q, qd, t, args)
+        return jnp.dot(qd, p) - value
 
     def constraint_jacobian(self, q, t, args) -> Float[Array, "k n"]:
         """`A = (g_{j sigma})`, the stacked rows of every constraint."""
