@@ -231,6 +231,41 @@ def test_singular_cases():
     assert not singular[0] and singular[1]
 
 
+def test_one_constraint_singular_cases():
+    """One constraint: the 1 x 1 Schur complement `s = A D^-1 A^T` is singular
+    exactly where `s` is 0, overflows to inf or is NaN. Each is reported (zeros),
+    alone and in a batch, where a wrong answer was possible (`s = inf` would give
+    `lambda = 0`); a tiny or a huge but finite `s` is solved."""
+    masses = jnp.array([1.0, 2.0, 3.0])
+    mass = SparseMatrix.from_dense(jnp.diag(masses), np.eye(3, dtype=bool))
+    rhs, bias = jnp.array([1.0, -2.0, 0.5]), jnp.array([0.3])
+    assert AUTO._diagonal_fast_path(mass, jnp.ones((1, 3)), 3, 1)
+    singular_rows = [[0.0, 0.0, 0.0], [1e200, 0.0, 1.0], [jnp.nan, 1.0, 1.0]]
+    solvable_rows = [[1e-100, 1e-100, 0.0], [1e150, 0.0, 0.0], [1.0, -2.0, 0.5]]
+    jacs = jnp.asarray(singular_rows + solvable_rows)[:, None, :]
+    solve = jax.jit(AUTO.solve)
+    batched = jax.jit(jax.vmap(AUTO.solve, in_axes=(None, 0, None, None)))
+    x_b, lam_b, singular_b = batched(mass, jacs, rhs, bias)
+    for i, jac in enumerate(jacs):
+        for x, lam, singular in (
+            solve(mass, jac, rhs, bias),
+            (x_b[i], lam_b[i], singular_b[i]),
+        ):
+            if i < len(singular_rows):
+                assert singular, jac
+                assert jnp.all(x == 0) and jnp.all(lam == 0)
+                continue
+            assert not singular, jac
+            # The range-space formulas, in NumPy.
+            a, f, d = np.asarray(jac[0]), np.asarray(rhs), np.asarray(masses)
+            lam_ref = (-float(bias[0]) - np.sum(a * f / d)) / np.sum(a * a / d)
+            x_ref = (f + a * lam_ref) / d
+            np.testing.assert_allclose(lam, [lam_ref], rtol=1e-14)
+            np.testing.assert_allclose(
+                x, x_ref, rtol=1e-14, atol=1e-14 * np.max(np.abs(f / d))
+            )
+
+
 def _static(mass):
     return mass.rows, mass.cols, mass.shape
 
