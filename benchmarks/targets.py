@@ -10,7 +10,9 @@ Rows (float64, after compilation, medians; ratios within this run):
    blocks of 10 calls in a row, the blocks alternating (`time_jax_interleaved`'s
    `block`): with XLA's threads a single call's time depends on the program called
    before it. `--single-calls` also measures the fresh-process rows called singly in
-   turn (how the sixth session measured them), for comparison.
+   turn (how the sixth session measured them), for comparison. Judged: the
+   fresh-process rows in blocks; this process's ratios are printed, not judged (with
+   XLA's threads identical programs read up to 0.15x apart in one process).
 2. One two-cylinder trajectory (`t in [0, 0.8]`): SymPy `LagrangesMethod` + SciPy
    DOP853 / ours, ours / `diffrax.diffeqsolve` on the hand-written right-hand side
    (the two called in turn, `time_jax_interleaved`);
@@ -26,8 +28,8 @@ Rows (float64, after compilation, medians; ratios within this run):
 5. The N-link chain (`chain.py`): EOM per state at `N = 256` (`vmap` over 1,000
    states), one trajectory at `N = 256` (Tsit5, `rtol = 1e-8`, `t in [0, 1]`), and at
    `N = 4` the default against LAPACK's LU (`FullKKTLU(unroll_max=0)`): run and
-   compile (in this process, and as the first call of fresh processes, `--rounds`
-   each, alternating).
+   compile (in this process, not judged, and as the first call of fresh processes,
+   `--rounds` each, alternating, judged).
 
     python benchmarks/targets.py [--out benchmarks/results] [--fast-compilation]
         [--loop-kernels]
@@ -77,22 +79,25 @@ def measure(opts) -> list[dict]:
         scene: dynamics.accelerations_benchmark(scene, 10_000, opts.repeats)
         for scene in ("cylinders", "pendulum")
     }
+    # One process's ratio, printed but not judged: with XLA's threads two identical
+    # programs read up to 0.15x apart in one process (`benchmarks/README.md`, the
+    # seventh session); the fresh-process medians below are judged.
     r = acc["cylinders"]["methods"]["autodiff solve_accelerations"]
     row(
-        "EOM two cylinders, jit(vmap) 1e4: autodiff / hand-written",
+        "EOM two cylinders, jit(vmap) 1e4: autodiff / hand-written (this process)",
         "2.4x",
         r["ratio_to_hand_written"],
         "<= 1.3x",
-        r["ratio_to_hand_written"] <= 1.3,
+        None,
         "x",
     )
     r = acc["pendulum"]["methods"]["autodiff solve_accelerations"]
     row(
-        "EOM Cartesian pendulum, same",
+        "EOM Cartesian pendulum, same (this process)",
         "0.9x",
         r["ratio_to_hand_written"],
         "<= 1.1x",
-        r["ratio_to_hand_written"] <= 1.1,
+        None,
         "x",
     )
 
@@ -264,10 +269,11 @@ def measure(opts) -> list[dict]:
         ratio <= 1.05,
         "x",
     )
-    row("  same, compile", "4.3x", compile_ratio, "<= 1x", compile_ratio <= 1.05, "x")
     # In one process the default compiles first and LAPACK's second, in a process
-    # that has already traced and compiled most of the library: a first call of each
-    # in its own fresh process, the two alternating, is the fair comparison.
+    # that has already traced and compiled most of the library (0.72-1.17x over the
+    # runs in `benchmarks/README.md`): printed, not judged. A first call of each in
+    # its own fresh process, the two alternating, is the fair comparison, judged.
+    row("  same, compile (this process)", "4.3x", compile_ratio, "<= 1x", None, "x")
     fresh = {"default": [], "lapack": []}
     for i in range(opts.rounds):
         for name in ("default", "lapack") if i % 2 == 0 else ("lapack", "default"):
@@ -375,6 +381,10 @@ def main() -> None:
     for r in rows:
         print(f"| {r['figure']} | {r['before']} | {r['value']:.3g}{r['unit']} | "
               f"{r['target']} | {_verdict(r['met'])} |")  # fmt: skip
+    judged = [r for r in rows if r["met"] is not None and r["target"] != "-"]
+    missed = [r["figure"].strip() for r in judged if not r["met"]]
+    print(f"\njudged rows met: {len(judged) - len(missed)} of {len(judged)}"
+          + (f"; missed: {'; '.join(missed)}" if missed else ""))  # fmt: skip
     print(f"wrote {path}")
 
 
