@@ -29,9 +29,8 @@ from .saddle_point import (
     _entries,
     _max_abs,
     _minus_sum,
-    ldl_factor_unrolled,
-    ldl_solve_unrolled,
     nan_on_singular,
+    schur_solve_unrolled,
 )
 from .sparse import matvec as _mul, SparseMatrix
 
@@ -185,22 +184,11 @@ def diagonal_range_space(
         # D^-1 A^T, row by row of A.
         y = [[None if v is None else v * inv[i] for i, v in enumerate(r)] for r in a]
         schur = [[_dot(y[r], a[s]) for s in range(k)] for r in range(k)]
-        right = [_minus_sum(-bias[r], [_dot(y[r], f)]) for r in range(k)]
-        if k == 1 and schur[0][0] is not None:
-            # One constraint: the pivot test of `ldl_factor_unrolled`,
-            # `|s| <= 10 eps |s|`, holds for `s = 0` and `s = +-inf` only, and
-            # both already give a multiplier that is not finite (`right / 0`, and
-            # `inf` taken as NaN), which the test below reports `singular`: the
-            # same values and flag, bit for bit, without a flag array that XLA
-            # writes out as a pass over a batch of its own (the Cartesian
-            # pendulum, 1e4 states, one thread: 1.15x -> 1.05x the hand-written
-            # equations, `benchmarks/README.md`).
-            s = schur[0][0]
-            lam = [right[0] / jnp.where(jnp.isinf(s), jnp.nan, s)]
-            breakdown = jnp.array(False)
-        else:
-            lower, piv, _, breakdown = ldl_factor_unrolled(schur)
-            lam, _ = ldl_solve_unrolled(lower, piv, right)
+        # Its non-finite solutions are reported below (one constraint: no pivot
+        # test, see `schur_solve_unrolled`).
+        lam, breakdown = schur_solve_unrolled(
+            schur, [_minus_sum(-bias[r], [_dot(y[r], f)]) for r in range(k)]
+        )
         lam = [zero if v is None else v for v in lam]
         x = []
         for i in range(n):

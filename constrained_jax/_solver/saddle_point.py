@@ -341,6 +341,28 @@ def ldl_solve_unrolled(lower, d, b: list, null=None, size=None):
     return x, inconsistent
 
 
+def schur_solve_unrolled(schur: list[list], right: list):
+    """`(lam, breakdown)`: `S lam = right` for the symmetric Schur complement `S` of
+    a range-space method (nested lists of scalars), by `ldl_factor_unrolled` and
+    `ldl_solve_unrolled`; `breakdown` flags a vanishing pivot.
+
+    For callers that report a solution that is not finite as `singular` (both
+    range-space solvers). With one constraint, `S` is `1 x 1` and the pivot test,
+    `|s| <= 10 eps |s|`, holds for `s = 0` and `s = +-inf` only: both make
+    `right / s` not finite (`inf` is taken as NaN), so no test is made and
+    `breakdown` is false, with the same values and flag in the end, bit for bit.
+    Under `jax.vmap` the test was a flag array that XLA writes out as a pass over the
+    batch of its own (the Cartesian pendulum, 1e4 states, one thread: 1.15x ->
+    1.05x the hand-written equations, `benchmarks/README.md`).
+    """
+    if len(schur) == 1 and schur[0][0] is not None:
+        s = schur[0][0]
+        return [right[0] / jnp.where(jnp.isinf(s), jnp.nan, s)], jnp.array(False)
+    lower, d, _, breakdown = ldl_factor_unrolled(schur)
+    lam, _ = ldl_solve_unrolled(lower, d, right)
+    return lam, breakdown
+
+
 def _entries(matrix, shape) -> list[list]:
     """Nested lists of scalars, `None` outside the pattern of a `SparseMatrix`."""
     rows, cols = shape
@@ -463,11 +485,8 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
             y.append(y_r)
             singular = singular | inconsistent
         schur = [[_dot(a[r], y[s]) for s in range(k)] for r in range(k)]
-        lower_s, d_s, _, singular_s = ldl_factor_unrolled(schur)
-        lam, _ = ldl_solve_unrolled(
-            lower_s,
-            d_s,
-            [_minus_sum(-b[r], [_dot(a[r], u)]) for r in range(k)],
+        lam, singular_s = schur_solve_unrolled(
+            schur, [_minus_sum(-b[r], [_dot(a[r], u)]) for r in range(k)]
         )
         lam = [jnp.zeros_like(rhs[0]) if v is None else v for v in lam]
         x = [_add(u[i], _dot([y[r][i] for r in range(k)], lam)) for i in range(n)]
