@@ -1,5 +1,5 @@
 """Shared test helpers: tree comparison, finite differences, trace counting, a fresh
-Python process."""
+Python process, the one-constraint cases of the saddle-point solvers."""
 
 import functools as ft
 import os
@@ -7,6 +7,7 @@ import pathlib
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
@@ -75,3 +76,36 @@ def run_python(code: str, *, timeout: float, **environ) -> subprocess.CompletedP
         text=True,
         timeout=timeout,
     )
+
+
+def assert_one_constraint_cases(solver, mass, rhs, bias, reference, rtol):
+    """A saddle-point solver with one constraint (a `1 x 1` Schur complement, solved
+    without a pivot test): rows of `A` that make it zero, overflow it to inf or make
+    it NaN are refused (`singular`, zeros), alone and in a batch; tiny and huge but
+    finite rows are solved, to `reference(jac) -> (x, lambda)` (NumPy) within
+    `rtol` (the absolute error of `x` relative to its largest entry). In the
+    diagonal fast path, without the mapping of an infinite Schur complement to NaN,
+    the overflowing row would come back as `lambda = 0`, successful (checked: the
+    test then fails); `RangeSpaceLDL`'s augmentation turns that row into NaN
+    earlier."""
+    singular_rows = [[0.0, 0.0, 0.0], [1e200, 0.0, 1.0], [np.nan, 1.0, 1.0]]
+    solvable_rows = [[1e-100, 1e-100, 0.0], [1e150, 0.0, 0.0], [1.0, -2.0, 0.5]]
+    jacs = jnp.asarray(singular_rows + solvable_rows)[:, None, :]
+    solve = jax.jit(solver.solve)
+    x_b, lam_b, singular_b = jax.jit(
+        jax.vmap(solver.solve, in_axes=(None, 0, None, None))
+    )(mass, jacs, rhs, bias)
+    for i, jac in enumerate(jacs):
+        for x, lam, singular in (
+            solve(mass, jac, rhs, bias),
+            (x_b[i], lam_b[i], singular_b[i]),
+        ):
+            if i < len(singular_rows):
+                assert singular, jac
+                assert jnp.all(x == 0) and jnp.all(lam == 0)
+                continue
+            assert not singular, jac
+            x_ref, lam_ref = reference(np.asarray(jac))
+            scale = np.max(np.abs(x_ref))
+            np.testing.assert_allclose(lam, lam_ref, rtol=rtol)
+            np.testing.assert_allclose(x, x_ref, rtol=rtol, atol=rtol * scale)

@@ -15,7 +15,7 @@ from constrained_jax._solver.diagonal import stack_by_select
 from constrained_jax._solver.sparse import SparseMatrix
 from constrained_jax.scenes import two_cylinders as cyl
 
-from .helpers import finite_difference_grad
+from .helpers import assert_one_constraint_cases, finite_difference_grad
 
 
 AUTO = cjax.Automatic()
@@ -232,38 +232,22 @@ def test_singular_cases():
 
 
 def test_one_constraint_singular_cases():
-    """One constraint: the 1 x 1 Schur complement `s = A D^-1 A^T` is singular
-    exactly where `s` is 0, overflows to inf or is NaN. Each is reported (zeros),
-    alone and in a batch, where a wrong answer was possible (`s = inf` would give
-    `lambda = 0`); a tiny or a huge but finite `s` is solved."""
-    masses = jnp.array([1.0, 2.0, 3.0])
+    """One constraint: `s = A D^-1 A^T` is singular exactly where it is 0, overflows
+    to inf or is NaN (`assert_one_constraint_cases`); else the range-space formulas,
+    in NumPy."""
+    masses = np.array([1.0, 2.0, 3.0])
     mass = SparseMatrix.from_dense(jnp.diag(masses), np.eye(3, dtype=bool))
-    rhs, bias = jnp.array([1.0, -2.0, 0.5]), jnp.array([0.3])
+    rhs, bias = np.array([1.0, -2.0, 0.5]), np.array([0.3])
     assert AUTO._diagonal_fast_path(mass, jnp.ones((1, 3)), 3, 1)
-    singular_rows = [[0.0, 0.0, 0.0], [1e200, 0.0, 1.0], [jnp.nan, 1.0, 1.0]]
-    solvable_rows = [[1e-100, 1e-100, 0.0], [1e150, 0.0, 0.0], [1.0, -2.0, 0.5]]
-    jacs = jnp.asarray(singular_rows + solvable_rows)[:, None, :]
-    solve = jax.jit(AUTO.solve)
-    batched = jax.jit(jax.vmap(AUTO.solve, in_axes=(None, 0, None, None)))
-    x_b, lam_b, singular_b = batched(mass, jacs, rhs, bias)
-    for i, jac in enumerate(jacs):
-        for x, lam, singular in (
-            solve(mass, jac, rhs, bias),
-            (x_b[i], lam_b[i], singular_b[i]),
-        ):
-            if i < len(singular_rows):
-                assert singular, jac
-                assert jnp.all(x == 0) and jnp.all(lam == 0)
-                continue
-            assert not singular, jac
-            # The range-space formulas, in NumPy.
-            a, f, d = np.asarray(jac[0]), np.asarray(rhs), np.asarray(masses)
-            lam_ref = (-float(bias[0]) - np.sum(a * f / d)) / np.sum(a * a / d)
-            x_ref = (f + a * lam_ref) / d
-            np.testing.assert_allclose(lam, [lam_ref], rtol=1e-14)
-            np.testing.assert_allclose(
-                x, x_ref, rtol=1e-14, atol=1e-14 * np.max(np.abs(f / d))
-            )
+
+    def reference(jac):
+        a = jac[0]
+        lam = (-bias[0] - np.sum(a * rhs / masses)) / np.sum(a * a / masses)
+        return (rhs + a * lam) / masses, [lam]
+
+    assert_one_constraint_cases(
+        AUTO, mass, jnp.asarray(rhs), jnp.asarray(bias), reference, rtol=1e-14
+    )
 
 
 def _static(mass):

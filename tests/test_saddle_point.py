@@ -8,7 +8,7 @@ import pytest
 
 import constrained_jax as cjax
 
-from .helpers import finite_difference_grad
+from .helpers import assert_one_constraint_cases, finite_difference_grad
 
 
 def _kkt_reference(mass, jac, rhs, bias):
@@ -103,34 +103,18 @@ def test_singular_systems_are_flagged(solver):
 
 def test_one_constraint_singular_cases():
     """`RangeSpaceLDL` with one constraint and a coupled `M`: its `1 x 1` Schur
-    complement needs no pivot test (`schur_solve_unrolled`). A zero row of `A`, an
-    overflowing one and a NaN are refused, alone and in a batch; tiny and huge but
-    finite rows are solved, to NumPy's dense solve."""
-    mass = jnp.array([[2.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 3.0]])
-    rhs, bias = jnp.array([1.0, -2.0, 0.5]), jnp.array([0.3])
-    singular_rows = [[0.0, 0.0, 0.0], [1e200, 0.0, 1.0], [np.nan, 1.0, 1.0]]
-    solvable_rows = [[1e-100, 1e-100, 0.0], [1e150, 0.0, 0.0], [1.0, -2.0, 0.5]]
-    jacs = jnp.asarray(singular_rows + solvable_rows)[:, None, :]
-    solver = cjax.RangeSpaceLDL()
-    solve = jax.jit(solver.solve)
-    x_b, lam_b, singular_b = jax.jit(
-        jax.vmap(solver.solve, in_axes=(None, 0, None, None))
-    )(mass, jacs, rhs, bias)
-    for i, jac in enumerate(jacs):
-        for x, lam, singular in (
-            solve(mass, jac, rhs, bias),
-            (x_b[i], lam_b[i], singular_b[i]),
-        ):
-            if i < len(singular_rows):
-                assert singular, jac
-                assert jnp.all(x == 0) and jnp.all(lam == 0)
-                continue
-            assert not singular, jac
-            x_ref, lam_ref = _kkt_reference(
-                np.asarray(mass), np.asarray(jac), np.asarray(rhs), np.asarray(bias)
-            )
-            np.testing.assert_allclose(lam, lam_ref, rtol=1e-12)
-            np.testing.assert_allclose(x, x_ref, rtol=1e-12, atol=1e-12)
+    complement needs no pivot test (`schur_solve_unrolled`); the cases of
+    `assert_one_constraint_cases`, against NumPy's dense solve."""
+    mass = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 3.0]])
+    rhs, bias = np.array([1.0, -2.0, 0.5]), np.array([0.3])
+    assert_one_constraint_cases(
+        cjax.RangeSpaceLDL(),
+        jnp.asarray(mass),
+        jnp.asarray(rhs),
+        jnp.asarray(bias),
+        lambda jac: _kkt_reference(mass, jac, rhs, bias),
+        rtol=1e-12,
+    )
 
 
 def test_indefinite_mass_matrix_needs_full_kkt_lu():
