@@ -1,6 +1,7 @@
 """The batched equations of motion of two git revisions, in fresh processes.
 
-`jit(vmap(solve_accelerations))` over 10,000 states of a scene, against the
+`jit(vmap(solve_accelerations))` over a batch of states of a scene (10,000 unless
+`--states`), against the
 hand-written closed form (`dynamics.py`), each revision's `constrained_jax/` exported
 with `git archive` into a folder of its own and imported by a child process (the
 benchmark code, states and hand-written functions are this checkout's). Each child
@@ -10,7 +11,7 @@ rounds. Prints and stores the medians over the processes of the ratio ours /
 hand-written and of each time.
 
     python benchmarks/eom_ab.py --a 9195da4 --b HEAD [--scene pendulum]
-        [--processes 5] [--threads] [--out benchmarks/results]
+        [--states 10000] [--processes 5] [--threads] [--out benchmarks/results]
 
 A revision may also be a folder holding a `constrained_jax/` (a patched copy).
 """
@@ -28,7 +29,7 @@ import tempfile
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def child(folder: str, scene: str, pin: bool, repeats: int) -> None:
+def child(folder: str, scene: str, pin: bool, repeats: int, states: int) -> None:
     sys.path.insert(0, folder)
     if pin:
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
@@ -52,7 +53,7 @@ def child(folder: str, scene: str, pin: bool, repeats: int) -> None:
         else dynamics.cylinders_accelerations_by_hand
     )
     system, args = module.system(), module.default_args()
-    q, qd = dynamics.random_states(scene, 10_000)
+    q, qd = dynamics.random_states(scene, states)
     t = jnp.asarray(0.0)
     fns = {
         "ours": jax.jit(
@@ -103,12 +104,13 @@ def main() -> None:
     parser.add_argument("--processes", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=15, help="blocks per program")
     parser.add_argument("--threads", action="store_true", help="XLA's threads")
+    parser.add_argument("--states", type=int, default=10_000, help="batch size")
     parser.add_argument("--out", default=os.path.join(HERE, "results"))
-    parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
     opts = parser.parse_args()
     if opts.child:
-        folder, scene, pin, repeats = opts.child
-        child(folder, scene, pin == "1", int(repeats))
+        folder, scene, pin, repeats, states = opts.child
+        child(folder, scene, pin == "1", int(repeats), int(states))
         return
     folders = {rev: export(rev) for rev in (opts.a, opts.b)}
     runs: dict = {opts.a: [], opts.b: []}
@@ -118,7 +120,7 @@ def main() -> None:
             done = subprocess.run(
                 [sys.executable, __file__, "--a", opts.a, "--b", opts.b, "--child",
                  folders[rev], opts.scene, "0" if opts.threads else "1",
-                 str(opts.repeats)],
+                 str(opts.repeats), str(opts.states)],
                 capture_output=True, text=True,
             )  # fmt: skip
             if done.returncode:
@@ -136,7 +138,8 @@ def main() -> None:
         }
         s = summary[rev]
         print(
-            f"{rev}: {opts.scene}, {setting}, ours / hand-written "
+            f"{rev}: {opts.scene}, {opts.states:,} states, {setting}, "
+            f"ours / hand-written "
             f"{s['ratio']:.3f}x (processes: "
             f"{', '.join(f'{x:.3f}' for x in s['ratios'])}), ours "
             f"{s['ours_s'] * 1e6:.1f} us, hand-written {s['hand_s'] * 1e6:.1f} us, "
@@ -149,7 +152,8 @@ def main() -> None:
     path = os.path.join(opts.out, "eom_ab.json")
     with open(path, "w") as f:
         json.dump(
-            {"machine": machine_info(), "scene": opts.scene, "setting": setting,
+            {"machine": machine_info(), "scene": opts.scene, "states": opts.states,
+             "setting": setting,
              "a": opts.a, "b": opts.b, "processes": opts.processes,
              "results": summary},
             f, indent=1,
