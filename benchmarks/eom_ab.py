@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import statistics
 import subprocess
 import sys
@@ -79,9 +80,14 @@ def child(folder: str, scene: str, pin: bool, repeats: int, states: int) -> None
     )
 
 
+def _is_checkout(rev: str) -> bool:
+    return os.path.isdir(os.path.join(rev, "constrained_jax"))
+
+
 def export(rev: str) -> str:
-    """A folder holding `rev`'s `constrained_jax/` (`rev` itself if it is one)."""
-    if os.path.isdir(os.path.join(rev, "constrained_jax")):
+    """A folder holding `rev`'s `constrained_jax/` (`rev` itself if it is one; else
+    a new temporary folder, removed after the run)."""
+    if _is_checkout(rev):
         return os.path.abspath(rev)
     folder = tempfile.mkdtemp(prefix=f"eom_ab_{re.sub(r'[^0-9A-Za-z]', '_', rev)}_")
     top = subprocess.check_output(
@@ -94,25 +100,8 @@ def export(rev: str) -> str:
     return folder
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--a", required=True)
-    parser.add_argument("--b", required=True)
-    parser.add_argument(
-        "--scene", default="pendulum", choices=["pendulum", "cylinders"]
-    )
-    parser.add_argument("--processes", type=int, default=5)
-    parser.add_argument("--repeats", type=int, default=15, help="blocks per program")
-    parser.add_argument("--threads", action="store_true", help="XLA's threads")
-    parser.add_argument("--states", type=int, default=10_000, help="batch size")
-    parser.add_argument("--out", default=os.path.join(HERE, "results"))
-    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
-    opts = parser.parse_args()
-    if opts.child:
-        folder, scene, pin, repeats, states = opts.child
-        child(folder, scene, pin == "1", int(repeats), int(states))
-        return
-    folders = {rev: export(rev) for rev in (opts.a, opts.b)}
+def _compare(opts, folders) -> tuple[dict, str]:
+    """Alternate the revisions' child processes; print and return the medians."""
     runs: dict = {opts.a: [], opts.b: []}
     for i in range(opts.processes):
         order = (opts.a, opts.b) if i % 2 == 0 else (opts.b, opts.a)
@@ -145,6 +134,34 @@ def main() -> None:
             f"{s['ours_s'] * 1e6:.1f} us, hand-written {s['hand_s'] * 1e6:.1f} us, "
             f"max |qdd difference| {s['max_abs_qdd_difference']:.1e}"
         )
+    return summary, setting
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--a", required=True)
+    parser.add_argument("--b", required=True)
+    parser.add_argument(
+        "--scene", default="pendulum", choices=["pendulum", "cylinders"]
+    )
+    parser.add_argument("--processes", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=15, help="blocks per program")
+    parser.add_argument("--threads", action="store_true", help="XLA's threads")
+    parser.add_argument("--states", type=int, default=10_000, help="batch size")
+    parser.add_argument("--out", default=os.path.join(HERE, "results"))
+    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
+    opts = parser.parse_args()
+    if opts.child:
+        folder, scene, pin, repeats, states = opts.child
+        child(folder, scene, pin == "1", int(repeats), int(states))
+        return
+    folders = {rev: export(rev) for rev in (opts.a, opts.b)}
+    exported = [f for rev, f in folders.items() if not _is_checkout(rev)]
+    try:
+        summary, setting = _compare(opts, folders)
+    finally:
+        for folder in exported:  # made by `export`, never a folder of the user's
+            shutil.rmtree(folder, ignore_errors=True)
     sys.path.insert(0, HERE)
     from _common import machine_info
 
