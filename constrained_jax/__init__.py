@@ -73,9 +73,11 @@ from ._solver import (
     DenseLU as DenseLU,
     EquilibratedDenseLU as EquilibratedDenseLU,
     FullKKTLU as FullKKTLU,
+    KKTForm as KKTForm,
     MINRES as MINRES,
     Newton as Newton,
     RangeSpaceLDL as RangeSpaceLDL,
+    SaddlePointSystem as SaddlePointSystem,
     SparseSchur as SparseSchur,
 )
 from ._stabilization import (

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._constraints import Unilateral
-from ._solver import kkt_derivative
+from ._system import project
 
 
 class Events(eqx.Module):
@@ -151,28 +151,10 @@ def impact(system, rows, e, q, qd, t, args, iterations: int = 3):
     impacting group's rows in it, whose velocity residual is reversed and scaled by
     `e`. The positions are first put back on the holonomic rows (the event is found
     a little past the contact: Gauss-Newton in the metric of `M`, `iterations`
-    steps), as `constrained_jax.consistent_initial_state` does.
+    steps), as `constrained_jax.consistent_initial_state` does: one projection,
+    `constrained_jax._system.project`.
     """
     n, dtype = q.shape[0], q.dtype
-    t = jnp.asarray(t, dtype)
-    structure = system.structure(q, t, args)
-    mass, _, mismatch = system._lagrangian_pass(q, qd, t, args, structure)
     k = system.num_constraints(n, args, dtype)
-    zeros = jnp.zeros((n,), dtype)
-
-    def solve(q_, target):
-        # [[M, -A^T], [A, 0]] [x; Lambda] = [0; target]: M x = A^T Lambda, A x = target.
-        jac, _, mismatch_a = system._constraint_pass(q_, qd, t, args, structure)
-        x, lam, singular = kkt_derivative.solve(
-            system.saddle_point_solver, mass, jac, zeros, -target
-        )
-        return x, lam, singular | mismatch_a
-
-    singular = mismatch
-    for _ in range(iterations):
-        step, _, bad = solve(q, -system.position_residual(q, t, args))
-        q, singular = q + step, singular | bad
     scale = jnp.ones((k,), dtype).at[jnp.asarray(rows, int)].add(e)
-    residual = system.velocity_residual(q, qd, t, args)
-    jump, lam, bad = solve(q, -scale * residual)
-    return q, qd + jump, lam, singular | bad
+    return project(system, q, qd, t, args, iterations, velocity_scale=scale)

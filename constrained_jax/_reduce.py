@@ -30,7 +30,7 @@ from ._misc import (
     float_tolerance,
     full_precision,
 )
-from ._solver.sparse import as_dense
+from ._solver.saddle_point import solve as solve_saddle_point
 from ._system import LagrangianSystem, off_constraints, PATTERN_MISMATCH_MESSAGE
 
 
@@ -59,9 +59,9 @@ class Reduction(eqx.Module):
     ) -> Float[Array, " k"]:
         """The multipliers of the full system along the reduced motion.
 
-        `qddot` comes from the reduced equations lifted by the embedding; then
-        `lambda` solves `A^T lambda = M qddot - (Q - c)` in the least-squares sense
-        (exactly, when the reduced motion satisfies the full equations).
+        `lambda` is the full system's, from its saddle-point solve at the lifted
+        state; `qddot` comes from the reduced equations lifted by the embedding, and
+        the full equations are checked along it: `A^T lambda = M qddot - (Q - c)`.
 
         Raises (at run time, also under `jit`) where these would not be the
         multipliers of the full system: the lifted motion violates the full
@@ -85,13 +85,23 @@ class Reduction(eqx.Module):
             consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q.dtype)
         # qddot = d/dt (qdot) along (sdot, sddot, 1).
         _, qdd = jax.jvp(q_dot, (s, sd, t), (sd, sdd, jnp.ones_like(t)))
-        mass, rhs, jac, bias, mismatch = self.full._equations(q, qd, t, args)
-        mass, jac = as_dense(mass), as_dense(jac)
+        kkt = self.full.saddle_point_system(q, qd, t, args)
+        _, lam, singular = solve_saddle_point(self.full.saddle_point_solver, kkt)
+        mass, jac = kkt.mass.todense(), kkt.jac.todense()
+        rhs, bias = kkt.rhs, kkt.bias
         residual = mass @ qdd - rhs
-        lam, *_ = jnp.linalg.lstsq(jac.T, residual)
         # (Each check is attached to `qdd` too: `error_if` on an empty `lam` alone,
         # a system without constraints, would never fire.)
-        lam, qdd = eqx.error_if((lam, qdd), mismatch, PATTERN_MISMATCH_MESSAGE)
+        if kkt.mismatch is not None:
+            lam, qdd = eqx.error_if((lam, qdd), kkt.mismatch, PATTERN_MISMATCH_MESSAGE)
+        lam, qdd = eqx.error_if(
+            (lam, qdd),
+            singular,
+            "`Reduction.full_multipliers`: the full system's KKT matrix "
+            "[[M, -A^T], [A, 0]] is singular at this state (redundant constraints, "
+            "or a force along a direction without inertia): its multipliers are not "
+            "defined.",
+        )
         # The lifted motion on the full constraints: positions and velocities as
         # `simulate` checks a start, accelerations (`A qddot + bias = 0`) and the
         # balance of forces row by row, each against the size of its terms.

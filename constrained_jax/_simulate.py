@@ -36,7 +36,7 @@ from ._misc import (
 )
 from ._results import raise_if_failed, RESULTS
 from ._stabilization import AbstractStabilization, project_state, Unstabilized
-from ._system import LagrangianSystem, off_constraints
+from ._system import LagrangianSystem, off_constraints, solve_dynamics
 from ._variational_integrator import (
     AbstractVariationalIntegrator,
     integrate_variational,
@@ -169,7 +169,7 @@ def _solve_accelerations(system, q, qd, t, args, bias_correction=None):
 
 @eqx.filter_jit
 def _jit_solve_accelerations(system, q, qd, t, args, bias_correction):
-    return system._solve_accelerations_in_loop(q, qd, t, args, bias_correction)
+    return solve_dynamics(system, q, qd, t, args, bias_correction, fill=jnp.nan)
 
 
 def _field_and_multipliers(system, stabilization):

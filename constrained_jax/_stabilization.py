@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._system import project
 from ._wrapped_solver import AbstractForwardingSolver, prepare_to_wrap
 
 
@@ -125,33 +126,11 @@ class Projection(AbstractStabilization):
 
 
 def project_state(system, q, qd, t, args, iterations: int):
-    """The closest admissible `(q, qd)` in the kinetic-energy metric.
-
-    `M` and `A` are built as for the equations of motion (the same sparsity
-    patterns, the same solver). If a detected pattern misses an entry at one of the
-    states (see `LagrangianSystem.accelerations`) the projection is refused: the
-    state returned is NaN, which the solver then rejects."""
-    n = q.shape[0]
-    t = jnp.asarray(t, q.dtype)
-    structure = system.structure(q, t, args)
-    mass, _, mismatch = system._lagrangian_pass(q, qd, t, args, structure)
-
-    def kkt_solve(q_, rhs_lower):
-        # [[M, A^T], [A, 0]] [dq; mu] = [0; r] is the system's saddle-point problem
-        # with f = 0 and bias = -r (and lambda = -mu).
-        jac, _, mismatch_a = system._constraint_pass(q_, qd, t, args, structure)
-        zeros = jnp.zeros((n,), q.dtype)
-        step = system.saddle_point_solver.solve(mass, jac, zeros, -rhs_lower)[0]
-        return step, mismatch_a
-
-    for _ in range(iterations):
-        step, mismatch_a = kkt_solve(q, -system.position_residual(q, t, args))
-        q, mismatch = q + step, mismatch | mismatch_a
-    step, mismatch_a = kkt_solve(q, -system.velocity_residual(q, qd, t, args))
-    qd, mismatch = qd + step, mismatch | mismatch_a
-    q = jnp.where(mismatch, jnp.nan, q)
-    qd = jnp.where(mismatch, jnp.nan, qd)
-    return q, qd
+    """The closest admissible `(q, qd)` in the kinetic-energy metric
+    (`constrained_jax._system.project`): NaN where a solve is singular or a detected
+    pattern misses an entry at one of the states, which the solver then rejects."""
+    q, qd, _, singular = project(system, q, qd, t, args, iterations)
+    return jnp.where(singular, jnp.nan, q), jnp.where(singular, jnp.nan, qd)
 
 
 class ProjectedSolver(AbstractForwardingSolver):

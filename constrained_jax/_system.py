@@ -28,8 +28,13 @@ from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
 from ._misc import full_precision, inexact_asarray
-from ._solver import kkt_derivative
-from ._solver.saddle_point import AbstractSaddlePointSolver, Automatic
+from ._solver.automatic import Automatic
+from ._solver.saddle_point import (
+    AbstractSaddlePointSolver,
+    KKTForm,
+    SaddlePointSystem,
+    solve as solve_saddle_point,
+)
 from ._solver.sparse import SparseMatrix
 from ._structure import colouring, dense_structure, detect, probe_vector, Structure
 
@@ -49,10 +54,8 @@ PATTERN_MISMATCH_MESSAGE = (
 # on scalars and the directional derivatives pushed one by one: code that XLA fuses
 # into one loop under `jax.vmap` (batched gathers, `dot`s and small reductions are
 # not fused on CPU). Larger systems use vmapped, array-level code, and so do those
-# whose saddle-point solver is not unrolled scalar code itself
-# (`AbstractSaddlePointSolver.unrolled`: LAPACK or `SparseSchur` do not fuse either,
-# and the scalar assembly is larger to compile; a 4-link chain's `simulate`, 3,240 ->
-# 2,647 optimized HLO instructions, `benchmarks/README.md`).
+# whose saddle-point solver does not take scalar code (`KKTForm.unroll`: LAPACK or
+# `SparseSchur` do not fuse either, and the scalar assembly is larger to compile).
 _UNROLL = 24
 
 
@@ -120,17 +123,17 @@ def _seeds(pattern: np.ndarray, dtype):
 
 def _decompress(
     compressed, pattern: np.ndarray, colours: np.ndarray, unroll: bool = True
-):
+) -> SparseMatrix:
     """The matrix from its compressed products `compressed[c] = sum over the columns
-    j of colour c of column j`: dense when `pattern` is, else a `SparseMatrix`."""
+    j of colour c of column j`, with the static `pattern` (full: the dense matrix)."""
     if pattern.all():
         # Every column has its own colour: the Jacobian itself, its rows in the
         # order of the columns. Static indices, not a gather, which XLA:CPU would
         # materialise as a separate pass over a batch.
         order = np.argsort(colours)
         if np.array_equal(order, np.arange(order.shape[0])):
-            return compressed.T
-        return jnp.stack([compressed[int(c)] for c in order]).T
+            return SparseMatrix.dense(compressed.T)
+        return SparseMatrix.dense(jnp.stack([compressed[int(c)] for c in order]).T)
     rows, cols = np.nonzero(pattern)
     if unroll and len(rows) <= _UNROLL:
         # Static slices (fused under vmap) rather than a gather.
@@ -355,41 +358,60 @@ class LagrangianSystem(eqx.Module):
         """`k`, the number of constraint rows (by shape evaluation)."""
         return sum(c.num_constraints(n, args, dtype) for c in self.constraints)
 
-    def structure(self, q, t, args) -> Structure:
-        """The sparsity patterns of `M` and `A` that the equations of motion use:
-        detected once at trace time (cached; see `constrained_jax._structure`) when
-        the saddle-point solver takes sparse matrices, dense otherwise."""
+    def structure(self, q, t, args, sparse: bool = True) -> Structure:
+        """The sparsity patterns of `M` and `A`: detected once at trace time (cached;
+        see `constrained_jax._structure`) when `sparse`, else dense (full)."""
         n = q.shape[0]
         k = self.num_constraints(n, args, q.dtype)
-        if not self.saddle_point_solver.structured():
+        if not sparse:
             return dense_structure(n, k)
         return detect(self, q, t, args, n, k)
 
-    def _equations(self, q, qd, t, args):
-        """`(M, Q - c, A, bias, mismatch)`, each part in one pass.
+    def form(self, q, args) -> KKTForm:
+        """The form of the blocks the saddle-point solver takes (static)."""
+        n = q.shape[0]
+        return self.saddle_point_solver.form(n, self.num_constraints(n, args, q.dtype))
 
-        `M` and `A` are `SparseMatrix`es where their detected patterns are sparse
-        (dense arrays otherwise). Their nonzeros come from a column colouring: one
-        forward-mode product per colour (a diagonal `M` needs one, not `n`), all
-        pushed through one traced copy of the gradient of the Lagrangian (and of each
-        constraint) together with the directions that give the bias terms. With a
-        sparse pattern that the traced program does not prove (see
+    def saddle_point_system(
+        self, q, qd, t, args, bias_correction=None, form: KKTForm | None = None
+    ) -> SaddlePointSystem:
+        """The equations of motion at `(q, qd, t)` as a
+        [`constrained_jax.SaddlePointSystem`][]:
+        `[[M, -A^T], [A, 0]] [qddot; lambda] = [Q - c; -(Adot qdot + adot)]`, with
+        `bias_correction` (shape `(k,)`, as Baumgarte stabilization gives it) added
+        to the bias, in `form` (default: the one the system's saddle-point solver
+        takes).
+
+        Each part is built in one pass. With a sparse form, `M` and `A` have the
+        patterns detected at trace time, and their nonzeros come from a column
+        colouring: one forward-mode product per colour (a diagonal `M` needs one,
+        not `n`), all pushed through one traced copy of the gradient of the
+        Lagrangian (and of each constraint) together with the directions that give
+        the bias terms. With a pattern that the traced program does not prove (see
         `constrained_jax._sparsity`) one more direction, a fixed probe `v`, checks
         the pattern at the actual state: `mismatch` is true when `M v` or `A v`
         differs from the product of the sparse matrix with `v` beyond round-off (an
-        entry the detection at random states missed); the solve must then be
-        refused.
+        entry the detection at random states missed), and the solve is refused.
         """
-        structure = self.structure(q, t, args)
-        mass, rhs, mismatch_m = self._lagrangian_pass(q, qd, t, args, structure)
-        jac, bias, mismatch_a = self._constraint_pass(q, qd, t, args, structure)
-        return mass, rhs, jac, bias, mismatch_m | mismatch_a
+        t = jnp.asarray(t, q.dtype)
+        form = self.form(q, args) if form is None else form
+        structure = self.structure(q, t, args, form.sparse)
+        mass, rhs, mismatch_m = self._lagrangian_pass(
+            q, qd, t, args, structure, form.unroll
+        )
+        jac, bias, mismatch_a = self._constraint_pass(
+            q, qd, t, args, structure, form.unroll
+        )
+        if bias_correction is not None:
+            bias = bias + bias_correction
+        return SaddlePointSystem(mass, jac, rhs, bias, _either(mismatch_m, mismatch_a))
 
-    def _lagrangian_pass(self, q, qd, t, args, structure: Structure):
+    def _lagrangian_pass(self, q, qd, t, args, structure: Structure, unroll: bool):
         """`(M, Q - c, mismatch)`: `grad_q L` and `p = grad_qd L`, and the forward
         products of `(grad_q L, p)` along `(0, seed, 0)` (the columns of `M`),
-        `(qdot, 0, 1)` (the terms `dp/dq qdot + dp/dt` of `c`) and, for a sparse
-        pattern, `(0, probe, 0)`, all in one traced pass."""
+        `(qdot, 0, 1)` (the terms `dp/dq qdot + dp/dt` of `c`) and, for a pattern
+        not proven, `(0, probe, 0)`, all in one traced pass. `mismatch` is `None`
+        when nothing is checked."""
         n, dtype = q.shape[0], q.dtype
         checked = not (structure.mass_is_dense or structure.mass_proven)
         seeds, colours = _seeds(structure.mass, dtype)
@@ -402,7 +424,6 @@ class LagrangianSystem(eqx.Module):
         tangents.append((qd, None, jnp.ones((), dtype)))
         if checked:
             tangents.append((None, jnp.asarray(probe_vector(n), dtype), None))
-        unroll = self.saddle_point_solver.unrolled(n, structure.jac.shape[0])
         (grad_q, _), d_out = _push(gradient, (q, qd, t), tangents, unroll)
         # The columns of M stacked apart from the other directions: under `jax.vmap`
         # a mass matrix that depends on `args` only then stays unbatched.
@@ -411,22 +432,23 @@ class LagrangianSystem(eqx.Module):
         if self.forces is not None:
             rhs = rhs + self.forces(q, qd, t, args)
         mass = _decompress(columns, structure.mass, colours, unroll)
-        mismatch = jnp.array(False)
+        mismatch = None
         if checked:
             mismatch = _probe_mismatch(
                 columns.T, structure.mass, colours, d_out[-1][1], unroll
             )
         return mass, rhs, mismatch
 
-    def _constraint_pass(self, q, qd, t, args, structure: Structure):
+    def _constraint_pass(self, q, qd, t, args, structure: Structure, unroll: bool):
         """`(A, bias, mismatch)`: the products of `A` with the seeds of its column
-        colouring (and a probe, for a sparse pattern) and the acceleration bias, one
-        traced pass per constraint."""
+        colouring (and a probe, for a pattern not proven) and the acceleration bias,
+        one traced pass per constraint. `mismatch` is `None` when nothing is
+        checked."""
         n, dtype = q.shape[0], q.dtype
         k = structure.jac.shape[0]
-        mismatch = jnp.array(False)
         if k == 0:
-            return jnp.zeros((0, n), dtype), jnp.zeros((0,), dtype), mismatch
+            jac = SparseMatrix.dense(jnp.zeros((0, n), dtype))
+            return jac, jnp.zeros((0,), dtype), None
         checked = not (structure.jac_is_dense or structure.jac_proven)
         seeds, colours = _seeds(structure.jac, dtype)
         num = seeds.shape[0]
@@ -439,8 +461,8 @@ class LagrangianSystem(eqx.Module):
             products.append(products_c)
             bias.append(bias_c)
         products, bias = jnp.concatenate(products), jnp.concatenate(bias)
-        unroll = self.saddle_point_solver.unrolled(n, k)
         jac = _decompress(products[:, :num].T, structure.jac, colours, unroll)
+        mismatch = None
         if checked:
             mismatch = _probe_mismatch(
                 products[:, :num], structure.jac, colours, products[:, -1], unroll
@@ -462,65 +484,14 @@ class LagrangianSystem(eqx.Module):
     ) -> tuple[Float[Array, " n"], Float[Array, " k"], Bool[Array, ""]]:
         """`(qddot, lambda, singular)`: the KKT solve without raising.
 
-        `singular` flags a KKT system without a solution (then `qddot`, `lambda` are
+        `singular` flags a KKT system without a solution, or a detected sparsity
+        pattern that missed an entry at this state (then `qddot`, `lambda` are
         zeros); free gauge directions (no inertia, no force) are not singular, their
-        accelerations are zero (see `accelerations`).
-        The solve is `self.saddle_point_solver`'s (by default the range-space method,
-        unrolled so that XLA fuses it: on CPU a LAPACK call on such a small matrix
-        costs more than its arithmetic). `bias_correction` (shape `(k,)`) is added to
+        accelerations are zero (see `accelerations`). The solve is
+        `self.saddle_point_solver`'s. `bias_correction` (shape `(k,)`) is added to
         the acceleration bias, as Baumgarte stabilization does.
         """
-        qdd, lam, singular, mismatch = self._solve(q, qd, t, args, bias_correction)
-        return qdd, lam, singular | mismatch
-
-    @full_precision
-    def _solve_accelerations_in_loop(self, q, qd, t, args, bias_correction=None):
-        """`solve_accelerations` as `simulate`'s vector field calls it: the same
-        answers, with a missed pattern refused by masking the solution (see
-        `_solve`), and `qddot` NaN (not zero) where `singular`, which makes the
-        step fail."""
-        qdd, lam, singular, mismatch = self._solve(
-            q, qd, t, args, bias_correction, refuse_by_nan=False, nan_x=True
-        )
-        return qdd, lam, singular | mismatch
-
-    def _solve(
-        self, q, qd, t, args, bias_correction=None, refuse_by_nan=True, nan_x=False
-    ):
-        """`(qddot, lambda, singular, mismatch)`: `mismatch` is the run-time check of
-        the sparsity patterns (see `_equations`); both flags zero the solution
-        (`qddot` is NaN instead with `nan_x`).
-
-        A pattern that missed an entry refuses the solve, in one of two ways that
-        give the same answers and differ only in what XLA makes of them. With
-        `refuse_by_nan` the right-hand side is NaN, for a solver that reports a
-        non-finite solution as `singular` with zeros (`reports_non_finite()`, the
-        library's solvers). Under `jax.vmap` over many
-        states that is faster than masking the solution, into which XLA fused the
-        pattern check again for each output (two cylinders, 1e4 states: 0.72x the
-        time, `ab.py`). Inside `simulate`'s integration loop masking is the faster
-        (a single trajectory 3-6 % faster, a batch of 64 the same), so the vector
-        field uses it."""
-        t = jnp.asarray(t, q.dtype)
-        mass, rhs, jac, bias, mismatch = self._equations(q, qd, t, args)
-        if bias_correction is not None:
-            bias = bias + bias_correction
-        solver = self.saddle_point_solver
-        by_nan = refuse_by_nan and solver.reports_non_finite()
-        if by_nan:
-            rhs = jnp.where(mismatch, jnp.nan, rhs)
-        # Differentiated by the implicit rule, not through the elimination.
-        qdd, lam, singular = kkt_derivative.solve(
-            solver, mass, jac, rhs, bias, nan_x=nan_x
-        )
-        if not by_nan:
-            n = qdd.shape[0]
-            fill = jnp.concatenate(
-                [jnp.full_like(qdd, jnp.nan if nan_x else 0.0), jnp.zeros_like(lam)]
-            )
-            sol = jnp.where(mismatch, fill, jnp.concatenate([qdd, lam]))
-            qdd, lam = sol[:n], sol[n:]
-        return qdd, lam, singular, mismatch
+        return solve_dynamics(self, q, qd, t, args, bias_correction)
 
     @full_precision
     def accelerations(self, q, qd, t, args=None):
@@ -551,8 +522,12 @@ class LagrangianSystem(eqx.Module):
         """
         q, qd = inexact_asarray(q), inexact_asarray(qd)
         self.check(q, qd, t, args)
-        qdd, lam, singular, mismatch = self._solve(q, qd, t, args)
-        qdd, lam = eqx.error_if((qdd, lam), mismatch, PATTERN_MISMATCH_MESSAGE)
+        system = self.saddle_point_system(q, qd, t, args)
+        qdd, lam, singular = solve_saddle_point(self.saddle_point_solver, system)
+        if system.mismatch is not None:
+            qdd, lam = eqx.error_if(
+                (qdd, lam), system.mismatch, PATTERN_MISMATCH_MESSAGE
+            )
         qdd, lam = eqx.error_if(
             (qdd, lam),
             singular,
@@ -577,3 +552,71 @@ class LagrangianSystem(eqx.Module):
         _, lam = self.accelerations(q, qd, t, args)
         jac = self.constraint_jacobian(q, jnp.asarray(t, q.dtype), args)
         return jac.T @ lam
+
+
+def _either(a, b):
+    """`a | b` for flags that may be `None` (nothing checked)."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    return a | b
+
+
+def solve_dynamics(
+    system: LagrangianSystem, q, qd, t, args, bias_correction=None, fill: float = 0.0
+):
+    """`(qddot, lambda, singular)` of `system` at `(q, qd, t)`: its saddle-point
+    system solved by its solver, differentiated by the implicit rule; `qddot` is
+    `fill` where `singular` (NaN inside a time integration: the step is then
+    rejected)."""
+    kkt = system.saddle_point_system(q, qd, t, args, bias_correction)
+    return solve_saddle_point(system.saddle_point_solver, kkt, fill)
+
+
+def project(
+    system: LagrangianSystem, q, qd, t, args, iterations: int, velocity_scale=None
+):
+    """The closest admissible state in the kinetic-energy metric: `(q, qd+, Lambda,
+    singular)`.
+
+    Positions: `iterations` Gauss-Newton steps of `[[M, -A^T], [A, 0]] [dq; mu] =
+    [0; -G]` on the holonomic rows (Pfaffian rows get `0`: the correction is a
+    virtual displacement), `M` at the given state and `A` at each iterate.
+    Velocities: one solve of `[[M, -A^T], [A, 0]] [dv; Lambda] = [0; -s (A qd + a)]`,
+    `s = velocity_scale` (shape `(k,)`, default 1): with `s = 1` the velocities are
+    projected onto `A qd + a = 0`; with `s = 1 + e` on an impacting group's rows, it
+    is Newton's impact law (the residual reversed and scaled by `e`), and `Lambda` is
+    the impulse, `M (qd+ - qd) = A^T Lambda`.
+
+    Each solve is the system's saddle-point solve (`M` and `A` as for the equations
+    of motion, the same solver, differentiated by the implicit rule). `singular`
+    flags a singular solve or a detected pattern that missed an entry at one of the
+    states.
+    """
+    t = jnp.asarray(t, q.dtype)
+    form = system.form(q, args)
+    structure = system.structure(q, t, args, form.sparse)
+    mass, _, mismatch = system._lagrangian_pass(q, qd, t, args, structure, form.unroll)
+    zeros = jnp.zeros(q.shape, q.dtype)
+    flags = [] if mismatch is None else [mismatch]
+
+    def solve(q_, target):
+        # [[M, -A^T], [A, 0]] [x; Lambda] = [0; target]: M x = A^T Lambda, A x = target.
+        jac, _, mismatch_a = system._constraint_pass(
+            q_, qd, t, args, structure, form.unroll
+        )
+        kkt = SaddlePointSystem(mass, jac, zeros, -target, mismatch_a)
+        x, lam, singular = solve_saddle_point(system.saddle_point_solver, kkt)
+        flags.append(singular)
+        return x, lam
+
+    for _ in range(iterations):
+        step, _ = solve(q, -system.position_residual(q, t, args))
+        q = q + step
+    residual = system.velocity_residual(q, qd, t, args)
+    if velocity_scale is not None:
+        residual = velocity_scale * residual
+    jump, impulse = solve(q, -residual)
+    singular = functools.reduce(jnp.logical_or, flags)
+    return q, qd + jump, impulse, singular

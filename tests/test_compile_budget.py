@@ -93,13 +93,13 @@ def _fresh(system):
 def _count_equations(monkeypatch, fn, *inputs) -> int:
     """How many times tracing `fn` traces the equations of motion of a system."""
     calls = []
-    original = cjax.LagrangianSystem._equations
+    original = cjax.LagrangianSystem.saddle_point_system
 
     def counted(self, *args):
         calls.append(None)
         return original(self, *args)
 
-    monkeypatch.setattr(cjax.LagrangianSystem, "_equations", counted)
+    monkeypatch.setattr(cjax.LagrangianSystem, "saddle_point_system", counted)
     # (In JAX's default promotion mode: diffrax checks the vector field in the
     # "standard" one, which would otherwise be a second trace under the tests'
     # "strict" mode.)

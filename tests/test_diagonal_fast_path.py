@@ -15,7 +15,7 @@ from constrained_jax._solver.diagonal import stack_by_select
 from constrained_jax._solver.sparse import SparseMatrix
 from constrained_jax.scenes import two_cylinders as cyl
 
-from .helpers import assert_one_constraint_cases, finite_difference_grad
+from .helpers import assert_one_constraint_cases, finite_difference_grad, solve_with
 
 
 AUTO = cjax.Automatic()
@@ -37,7 +37,7 @@ def _problem(rng, n, k, jac_pattern=None, masses=None):
 
 
 # The reference, jitted: eagerly each of its operations compiles a program of its own.
-_reference = jax.jit(cjax.FullKKTLU().solve)
+_reference = jax.jit(solve_with(cjax.FullKKTLU()))
 
 
 def _assert_agree(out, ref, tol=1e-12):
@@ -50,14 +50,15 @@ def _assert_agree(out, ref, tol=1e-12):
 
 
 def test_fast_path_is_chosen():
-    mass, jac, _, _ = _problem(np.random.default_rng(0), 3, 2)
-    assert AUTO._diagonal_fast_path(mass, jac, 3, 2)
+    mass, jac, rhs, bias = _problem(np.random.default_rng(0), 3, 2)
+    kkt = cjax.SaddlePointSystem(mass, jac, rhs, bias)
+    assert AUTO._diagonal_fast_path(kkt)
     # A structurally zero mass that A couples: always the general method.
     pattern = np.diag([True, True, False])
     sparse = SparseMatrix.from_dense(jnp.eye(3), pattern)
-    assert not AUTO._diagonal_fast_path(sparse, jac, 3, 2)
+    assert not AUTO._diagonal_fast_path(cjax.SaddlePointSystem(sparse, jac, rhs, bias))
     # Too large.
-    assert not AUTO._diagonal_fast_path(mass, jac, 3, 4)
+    assert not cjax.Automatic(unroll_max=4)._diagonal_fast_path(kkt)
 
 
 @pytest.mark.parametrize(
@@ -75,7 +76,7 @@ def test_matches_full_lu(n, k, pattern):
     rng = np.random.default_rng(10 * n + k)
     pattern = None if pattern is None else np.asarray(pattern, bool)
     problem = _problem(rng, n, k, pattern)
-    _assert_agree(jax.jit(AUTO.solve)(*problem), _reference(*problem))
+    _assert_agree(jax.jit(solve_with(AUTO))(*problem), _reference(*problem))
 
 
 def test_constant_rows_under_vmap():
@@ -83,7 +84,7 @@ def test_constant_rows_under_vmap():
     rng = np.random.default_rng(1)
     mass, jac, _, bias = _problem(rng, 4, 2, np.array([[1, 1, 0, 0], [0, 0, 1, 1]]))
     rhs = jnp.asarray(rng.normal(size=(7, 4)))
-    out = jax.jit(jax.vmap(AUTO.solve, in_axes=(None, None, 0, None)))(
+    out = jax.jit(jax.vmap(solve_with(AUTO), in_axes=(None, None, 0, None)))(
         mass, jac, rhs, bias
     )
     for i in range(7):
@@ -112,9 +113,9 @@ def test_batched_fast_path_is_the_single_one():
     mass, jac, _, _ = _problem(rng, 3, 2, pattern)
     rhs = jnp.asarray(rng.normal(size=(64, 3)))
     bias = jnp.asarray(rng.normal(size=(64, 2)))
-    batched = jax.jit(jax.vmap(AUTO.solve, in_axes=(None, None, 0, 0)))
+    batched = jax.jit(jax.vmap(solve_with(AUTO), in_axes=(None, None, 0, 0)))
     x, lam, singular = batched(mass, jac, rhs, bias)
-    one = jax.jit(AUTO.solve)
+    one = jax.jit(solve_with(AUTO))
     for i in range(0, 64, 9):
         x_i, lam_i, singular_i = one(mass, jac, rhs[i], bias[i])
         np.testing.assert_allclose(x[i], x_i, rtol=1e-14, atol=1e-14)
@@ -149,7 +150,7 @@ def test_everything_batched(sparse_jac):
         )
         return mass, jac
 
-    solve = jax.jit(jax.vmap(AUTO.solve))
+    solve = jax.jit(jax.vmap(solve_with(AUTO)))
     for zero in (False, True):
         m = masses.copy()
         if zero:
@@ -169,10 +170,10 @@ def test_free_gauge():
     pattern = np.array([[1, 1, 0]], bool)
     mass, jac, rhs, bias = _problem(rng, 3, 1, pattern, masses=[1.0, 2.0, 0.0])
     rhs = rhs.at[2].set(0.0)
-    x, lam, singular = jax.jit(AUTO.solve)(mass, jac, rhs, bias)
+    x, lam, singular = jax.jit(solve_with(AUTO))(mass, jac, rhs, bias)
     assert not singular and x[2] == 0
     _assert_agree((x, lam, singular), _reference(mass, jac, rhs, bias))
-    _, _, singular = jax.jit(AUTO.solve)(mass, jac, rhs.at[2].set(1.0), bias)
+    _, _, singular = jax.jit(solve_with(AUTO))(mass, jac, rhs.at[2].set(1.0), bias)
     assert singular
 
 
@@ -183,11 +184,12 @@ def test_coupled_zero_mass_single_and_batched():
     pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
     mass, jac, rhs, bias = _problem(rng, 3, 2, pattern, masses=[1.0, 2.0, 0.0])
     _assert_agree(
-        jax.jit(AUTO.solve)(mass, jac, rhs, bias), _reference(mass, jac, rhs, bias)
+        jax.jit(solve_with(AUTO))(mass, jac, rhs, bias),
+        _reference(mass, jac, rhs, bias),
     )
     values = jnp.stack([mass.values, jnp.array([1.0, 2.0, 0.5]), mass.values])
     masses = SparseMatrix(values, mass.rows, mass.cols, mass.shape)
-    out = jax.jit(jax.vmap(AUTO.solve, in_axes=(0, None, None, None)))(
+    out = jax.jit(jax.vmap(solve_with(AUTO), in_axes=(0, None, None, None)))(
         masses, jac, rhs, bias
     )
     for i in range(3):
@@ -220,12 +222,12 @@ def test_singular_cases():
         (mass, jac, rhs.at[0].set(jnp.nan), bias),
         (SparseMatrix(mass.values.at[1].set(jnp.nan), *_static(mass)), jac, rhs, bias),
     ):
-        x, lam, singular = jax.jit(AUTO.solve)(*problem)
+        x, lam, singular = jax.jit(solve_with(AUTO))(*problem)
         assert singular
         assert jnp.all(x == 0) and jnp.all(lam == 0)
     # In a batch, only the singular state is flagged.
     rhs_b = jnp.stack([rhs, rhs.at[0].set(jnp.nan)])
-    _, _, singular = jax.vmap(AUTO.solve, in_axes=(None, None, 0, None))(
+    _, _, singular = jax.vmap(solve_with(AUTO), in_axes=(None, None, 0, None))(
         mass, jac, rhs_b, bias
     )
     assert not singular[0] and singular[1]
@@ -238,7 +240,8 @@ def test_one_constraint_singular_cases():
     masses = np.array([1.0, 2.0, 3.0])
     mass = SparseMatrix.from_dense(jnp.diag(masses), np.eye(3, dtype=bool))
     rhs, bias = np.array([1.0, -2.0, 0.5]), np.array([0.3])
-    assert AUTO._diagonal_fast_path(mass, jnp.ones((1, 3)), 3, 1)
+    kkt = cjax.SaddlePointSystem(mass, jnp.ones((1, 3)), rhs, bias)
+    assert AUTO._diagonal_fast_path(kkt)
 
     def reference(jac):
         a = jac[0]
@@ -259,7 +262,7 @@ def _loss(solver, pattern):
         masses, jac = theta[:3], theta[3:9].reshape(2, 3)
         mass = SparseMatrix(masses, (0, 1, 2), (0, 1, 2), (3, 3))
         jac = SparseMatrix.from_dense(jnp.where(pattern, jac, 0.0), pattern)
-        x, lam, _ = solver.solve(mass, jac, theta[9:12], theta[12:14])
+        x, lam, _ = solve_with(solver)(mass, jac, theta[9:12], theta[12:14])
         return jnp.sum(jnp.sin(x)) + jnp.sum(lam**2)
 
     return loss
@@ -349,14 +352,12 @@ def _assert_nan_x(out, ref, singular):
     "solver", [AUTO, cjax.RangeSpaceLDL(), cjax.FullKKTLU()], ids=type
 )
 def test_nan_x_only_where_singular(solver):
-    """`_solve_nan_x` (what `simulate`'s vector field calls, through
-    `kkt_derivative.solve(..., nan_x=True)`) is `solve`, with `x` NaN instead of
-    zero where singular: alone and in a batch that mixes both, through the fast path
-    (set inside its branch) and the general method."""
-    from constrained_jax._solver import kkt_derivative
-
-    nan_x = jax.jit(lambda *p: kkt_derivative.solve(solver, *p, nan_x=True))
-    plain = jax.jit(solver.solve)
+    """The solve with `fill=nan` (what `simulate`'s vector field calls) is the
+    solve with `x` NaN instead of zero where singular: alone and in a batch that
+    mixes both, through the fast path (set inside its branch) and the general
+    method."""
+    nan_x = jax.jit(solve_with(solver, fill=jnp.nan))
+    plain = jax.jit(solve_with(solver))
     batched_nan_x = jax.jit(jax.vmap(nan_x, in_axes=(None, None, 0, None)))
     batched = jax.jit(jax.vmap(plain, in_axes=(None, None, 0, None)))
     for _, problem, singular in _nan_x_problems():
@@ -372,8 +373,10 @@ def test_nan_x_only_where_singular(solver):
 
 def test_nan_x_derivatives():
     """The derivatives of the NaN-filled solve are those of `solve` (no NaN enters
-    the tangents or cotangents, also at a singular system, where they are zero)."""
-    from constrained_jax._solver import kkt_derivative
+    the tangents or cotangents, also at a singular system, where they are zero):
+    through the library's solve, and the solver's own `solve` differentiated
+    directly."""
+    from constrained_jax._solver.saddle_point import SaddlePointSystem
 
     pattern = np.array([[1, 0, 0], [0, 1, 1]], bool)
 
@@ -383,11 +386,11 @@ def test_nan_x_derivatives():
         jac = SparseMatrix.from_dense(jnp.where(pattern, jac, 0.0), pattern)
         rhs, bias = theta[9:12], theta[12:14]
         if fill == "system":
-            x, lam, s = kkt_derivative.solve(AUTO, mass, jac, rhs, bias, nan_x=True)
+            x, lam, s = solve_with(AUTO, fill=jnp.nan)(mass, jac, rhs, bias)
         elif fill == "solver":
-            x, lam, s = AUTO._solve_nan_x(mass, jac, rhs, bias)
+            x, lam, s = AUTO.solve(SaddlePointSystem(mass, jac, rhs, bias), jnp.nan)
         else:
-            x, lam, s = AUTO.solve(mass, jac, rhs, bias)
+            x, lam, s = solve_with(AUTO)(mass, jac, rhs, bias)
         x = jnp.where(s, 0.0, x)
         return jnp.sum(jnp.sin(x)) + jnp.sum(lam**2)
 

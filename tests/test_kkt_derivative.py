@@ -1,4 +1,4 @@
-"""The implicit derivative of the saddle-point solve (`_solver/kkt_derivative.py`)
+"""The implicit derivative of the saddle-point solve (`_solver/saddle_point.py`)
 against the plain derivative through the elimination and against finite differences:
 first and second derivatives, forward and reverse mode, under `jax.vmap`, for a
 nonsingular system with a singular `M` (two cylinders with `I = 0`), a free gauge
@@ -70,8 +70,8 @@ def _plain(system):
 
     def fn(p):
         q, qd, args = _split(p)
-        mass, rhs, jac, bias, _ = system._equations(q, qd, jnp.asarray(0.0), args)
-        qdd, lam, _ = system.saddle_point_solver.solve(mass, jac, rhs, bias)
+        kkt = system.saddle_point_system(q, qd, jnp.asarray(0.0), args)
+        qdd, lam, _ = system.saddle_point_solver.solve(kkt, 0.0)
         return jnp.concatenate([qdd, lam])
 
     return fn

@@ -8,7 +8,7 @@ import pytest
 
 import constrained_jax as cjax
 
-from .helpers import assert_one_constraint_cases, finite_difference_grad
+from .helpers import assert_one_constraint_cases, finite_difference_grad, solve_with
 
 
 def _kkt_reference(mass, jac, rhs, bias):
@@ -37,7 +37,9 @@ SOLVERS = [cjax.RangeSpaceLDL(), cjax.FullKKTLU(), cjax.RangeSpaceLDL(unroll_max
 def test_matches_dense_solve(solver, n, k, rank_m):
     rng = np.random.default_rng(100 * n + 10 * k + rank_m)
     mass, jac, rhs, bias = _random_problem(rng, n, k, rank_m)
-    x, lam, singular = jax.jit(solver.solve)(*map(jnp.asarray, (mass, jac, rhs, bias)))
+    x, lam, singular = jax.jit(solve_with(solver))(
+        *map(jnp.asarray, (mass, jac, rhs, bias))
+    )
     x_ref, lam_ref = _kkt_reference(mass, jac, rhs, bias)
     assert not singular
     scale = 1 + np.max(np.abs(np.concatenate([x_ref, lam_ref])))
@@ -51,7 +53,7 @@ def test_badly_scaled_units():
     rng = np.random.default_rng(0)
     mass, jac, rhs, bias = _random_problem(rng, 4, 2, 3)
     mass, jac = 1e6 * mass, 1e-3 * jac
-    x, lam, singular = cjax.RangeSpaceLDL().solve(
+    x, lam, singular = solve_with(cjax.RangeSpaceLDL())(
         *map(jnp.asarray, (mass, jac, rhs, bias))
     )
     x_ref, lam_ref = _kkt_reference(mass, jac, rhs, bias)
@@ -92,12 +94,16 @@ def test_singular_systems_are_flagged(solver):
     rng = np.random.default_rng(1)
     # M singular on ker A: rank(M) + k < n.
     mass, jac, rhs, bias = _random_problem(rng, 4, 1, 2)
-    x, lam, singular = jax.jit(solver.solve)(*map(jnp.asarray, (mass, jac, rhs, bias)))
+    x, lam, singular = jax.jit(solve_with(solver))(
+        *map(jnp.asarray, (mass, jac, rhs, bias))
+    )
     assert singular and np.all(x == 0) and np.all(lam == 0)
     # Redundant rows: the second row repeats the first.
     mass, jac, rhs, bias = _random_problem(rng, 4, 2, 4)
     jac[1] = 2 * jac[0]
-    _, _, singular = jax.jit(solver.solve)(*map(jnp.asarray, (mass, jac, rhs, bias)))
+    _, _, singular = jax.jit(solve_with(solver))(
+        *map(jnp.asarray, (mass, jac, rhs, bias))
+    )
     assert singular
 
 
@@ -128,11 +134,11 @@ def test_indefinite_mass_matrix_needs_full_kkt_lu():
     rhs, bias = np.array([1.0, 2.0]), np.array([0.5])
     x_ref, lam_ref = _kkt_reference(mass, jac, rhs, bias)
     args = tuple(map(jnp.asarray, (mass, jac, rhs, bias)))
-    x, lam, singular = jax.jit(cjax.FullKKTLU().solve)(*args)
+    x, lam, singular = jax.jit(solve_with(cjax.FullKKTLU()))(*args)
     assert not singular
     np.testing.assert_allclose(x, x_ref, atol=1e-13)
     np.testing.assert_allclose(lam, lam_ref, atol=1e-13)
-    x, lam, singular = jax.jit(cjax.RangeSpaceLDL().solve)(*args)
+    x, lam, singular = jax.jit(solve_with(cjax.RangeSpaceLDL()))(*args)
     assert singular and np.all(x == 0) and np.all(lam == 0)
 
 
@@ -141,7 +147,7 @@ def test_vmap_and_grad():
     problems = [_random_problem(rng, 3, 2, 2) for _ in range(5)]
     stacked = [jnp.asarray(np.stack(p)) for p in zip(*problems, strict=True)]
     solver = cjax.RangeSpaceLDL()
-    xs, lams, singular = jax.jit(jax.vmap(solver.solve))(*stacked)
+    xs, lams, singular = jax.jit(jax.vmap(solve_with(solver)))(*stacked)
     assert not np.any(singular)
     for i, p in enumerate(problems):
         x_ref, lam_ref = _kkt_reference(*p)
@@ -151,7 +157,7 @@ def test_vmap_and_grad():
     mass, jac, rhs, bias = map(jnp.asarray, problems[0])
 
     def loss(scale):
-        x, lam, _ = solver.solve(mass * scale[0], jac * scale[1], rhs, bias)
+        x, lam, _ = solve_with(solver)(mass * scale[0], jac * scale[1], rhs, bias)
         return jnp.sum(x**2) + jnp.sum(jnp.sin(lam))
 
     point = jnp.array([1.3, 0.7])
@@ -183,32 +189,37 @@ def test_system_uses_its_solver():
 
 
 class _PlainDense(cjax.AbstractSaddlePointSolver):
-    """A solver of the user's: a dense solve of the KKT matrix, which takes dense
-    arrays (`structured()` is `False`) and reports nothing (`singular` always
-    false, `reports_non_finite()` false)."""
+    """A solver of the user's: a dense solve of the KKT matrix (`jnp.linalg.solve`),
+    keeping the protocol's contract: a solution that is not finite is `singular`,
+    with `x = fill` and `lambda = 0`."""
 
-    def solve(self, mass, jac, rhs, bias):
-        n, k = mass.shape[0], jac.shape[0]
+    def form(self, n, k):
+        return cjax.KKTForm(sparse=False, unroll=False)
+
+    def solve(self, system, fill):
+        mass, jac = system.mass.todense(), system.jac.todense()
+        n, k = system.n, system.k
         matrix = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k), mass.dtype)]])
-        sol = jnp.linalg.solve(matrix, jnp.concatenate([rhs, -bias]))
-        return sol[:n], sol[n:], jnp.asarray(False)
+        sol = jnp.linalg.solve(matrix, jnp.concatenate([system.rhs, -system.bias]))
+        singular = jnp.invert(jnp.all(jnp.isfinite(sol)))
+        x = jnp.where(singular, fill, sol[:n])
+        return x, jnp.where(singular, 0.0, sol[n:]), singular
 
 
 class _ChoosesPlain(cjax.Automatic):
     """`Automatic` whose `choose` returns the user's solver."""
 
-    def choose(self, mass, n, k):
+    def choose(self, system):
         return _PlainDense()
 
 
 @pytest.mark.parametrize("unroll_max", [0, 6], ids=["chosen", "fast-path-fallback"])
 def test_automatic_choosing_a_solver_of_the_users(unroll_max):
     """An `Automatic` subclass whose `choose` returns a solver of the user's: that
-    solver gets dense arrays (it is not structured), and `Automatic` keeps its
-    promise `reports_non_finite()` for it: a non-finite answer is `singular`, with
-    zeros. `unroll_max=0`: the chosen solver solves every state; `6`: the diagonal
-    fast path solves the pendulum and the user's solver is its fallback for a
-    vanishing mass."""
+    solver gets the blocks in `Automatic`'s form (it densifies them itself), and its
+    singular answers come back as the protocol says (zeros). `unroll_max=0`: the
+    chosen solver solves every state; `6`: the diagonal fast path solves the
+    pendulum and the user's solver is its fallback for a vanishing mass."""
     pend = cjax.scenes.pendulum
     base = pend.system()
     system = cjax.LagrangianSystem(
@@ -234,10 +245,10 @@ def test_automatic_choosing_a_solver_of_the_users(unroll_max):
 
 
 def test_dot_is_the_negated_sum_bit_for_bit():
-    """`_dot` adds the products in order; it gives the values of the former
-    `_minus_sum(None, [-u_i v_i, ...])` bit for bit, signed zeros and non-finite
+    """`dot` adds the products in order; it gives the values of
+    `minus_sum(None, [-u_i v_i, ...])` bit for bit, signed zeros and non-finite
     entries included, and `None` (a structural zero) where every term is one."""
-    from constrained_jax._solver.saddle_point import _dot, _minus_sum
+    from constrained_jax._solver.ldl import dot as _dot, minus_sum as _minus_sum
 
     rng = np.random.default_rng(7)
     special = [0.0, -0.0, 1e-300, -1e300, np.inf, np.nan]

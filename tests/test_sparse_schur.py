@@ -15,6 +15,8 @@ from constrained_jax._solver.sparse import SparseMatrix
 from constrained_jax._solver.sparse_schur import _band_order, _gather_sum, _plan, _take
 from constrained_jax.scenes import chain
 
+from .helpers import solve_with
+
 
 # The references and the problems are jitted: eagerly each of their operations would
 # compile a program of its own (for every size).
@@ -38,7 +40,7 @@ METHODS = pytest.mark.parametrize("method", ["levels", "scan"])
 def assert_agrees(
     mass, jac, rhs, bias, mass_pattern=None, jac_pattern=None, method="auto"
 ):
-    x, lam, singular = jax.jit(cj.SparseSchur(method=method).solve)(
+    x, lam, singular = jax.jit(solve_with(cj.SparseSchur(method=method)))(
         sparse(mass, mass_pattern), sparse(jac, jac_pattern), rhs, bias
     )
     x_ref, lam_ref = dense_solve(mass, jac, rhs, bias)
@@ -127,7 +129,7 @@ def test_band_order_star():
 def test_unknown_method(getkey):
     mass, jac, rhs, bias = chain_problem(3, getkey())
     with pytest.raises(ValueError, match="method"):
-        cj.SparseSchur(method="qr").solve(sparse(mass), sparse(jac), rhs, bias)
+        solve_with(cj.SparseSchur(method="qr"))(sparse(mass), sparse(jac), rhs, bias)
 
 
 @METHODS
@@ -183,7 +185,7 @@ def test_rigid_bodies(seed, method):
 
 def test_no_constraints(getkey):
     mass, jac, rhs, _ = chain_problem(3, getkey())
-    x, lam, singular = jax.jit(cj.SparseSchur().solve)(
+    x, lam, singular = jax.jit(solve_with(cj.SparseSchur()))(
         sparse(mass), sparse(jnp.zeros((0, 6))), rhs, jnp.zeros((0,))
     )
     assert not singular and lam.shape == (0,)
@@ -197,7 +199,7 @@ def test_vmap(method, getkey):
     pattern_m, pattern_a = np.asarray(mass[0]) != 0, np.asarray(jac[0]) != 0
 
     def solve(m, a, f, b):
-        return cj.SparseSchur(method=method).solve(
+        return solve_with(cj.SparseSchur(method=method))(
             sparse(m, pattern_m), sparse(a, pattern_a), f, b
         )
 
@@ -222,7 +224,7 @@ def test_gradients(method, getkey):
         return jnp.dot(weights, jnp.concatenate([x, lam]))
 
     def structured(m, a, f, b):
-        x, lam, _ = cj.SparseSchur(method=method).solve(
+        x, lam, _ = solve_with(cj.SparseSchur(method=method))(
             sparse(m, pattern_m), sparse(a, pattern_a), f, b
         )
         return x, lam
@@ -249,7 +251,7 @@ def test_gradients(method, getkey):
 
 
 def _assert_singular(mass, jac, rhs, bias, method="auto", mass_pattern=None):
-    x, lam, singular = jax.jit(cj.SparseSchur(method=method).solve)(
+    x, lam, singular = jax.jit(solve_with(cj.SparseSchur(method=method)))(
         sparse(mass, mass_pattern), sparse(jac), rhs, bias
     )
     assert singular
@@ -279,7 +281,7 @@ def test_nonfinite_refused(method, getkey):
     mass, jac, rhs, bias = chain_problem(4, getkey())
     pattern = np.asarray(jac) != 0
     jac = jac.at[1, 2].set(jnp.nan)
-    x, lam, singular = jax.jit(cj.SparseSchur(method=method).solve)(
+    x, lam, singular = jax.jit(solve_with(cj.SparseSchur(method=method)))(
         sparse(mass), sparse(jac, pattern), rhs, bias
     )
     assert singular and jnp.all(x == 0) and jnp.all(lam == 0)
@@ -299,10 +301,10 @@ def test_structurally_zero_diagonal_is_dense(getkey):
     """A mass matrix with a structurally zero diagonal entry is solved densely."""
     mass, jac, rhs, bias = chain_problem(3, getkey())
     mass = mass.at[0, 0].set(0.0)
-    x, lam, singular = jax.jit(cj.SparseSchur().solve)(
+    x, lam, singular = jax.jit(solve_with(cj.SparseSchur()))(
         sparse(mass), sparse(jac), rhs, bias
     )
-    x_ref, lam_ref, singular_ref = jax.jit(cj.FullKKTLU(unroll_max=0).solve)(
+    x_ref, lam_ref, singular_ref = jax.jit(solve_with(cj.FullKKTLU(unroll_max=0)))(
         mass, jac, rhs, bias
     )
     assert singular == singular_ref

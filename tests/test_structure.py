@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 import constrained_jax as cjax
-from constrained_jax._solver.saddle_point import Automatic, FullKKTLU, RangeSpaceLDL
+from constrained_jax import Automatic, FullKKTLU, RangeSpaceLDL
 from constrained_jax._solver.sparse import SparseMatrix
 from constrained_jax._solver.sparse_schur import SparseSchur
 from constrained_jax._stabilization import project_state
 from constrained_jax._structure import colouring, detect
 from constrained_jax.scenes import chain, pendulum, two_cylinders
+
+from .helpers import solve_with
 
 
 def _dense(system):
@@ -74,9 +76,10 @@ def test_cylinders_constant_rows_and_equations_match_closed_form():
     structure = system.structure(q, jnp.asarray(0.0), args)
     np.testing.assert_array_equal(structure.mass, np.eye(3, dtype=bool))
     assert structure.constant_rows.all()
-    mass, _, jac, _, mismatch = system._equations(q, qd, jnp.asarray(0.0), args)
-    assert isinstance(mass, SparseMatrix) and isinstance(jac, SparseMatrix)
-    assert not mismatch
+    kkt = system.saddle_point_system(q, qd, jnp.asarray(0.0), args)
+    mass, jac = kkt.mass, kkt.jac
+    assert not mass.is_dense and not jac.is_dense
+    assert kkt.mismatch is None  # proven by the traced program: nothing to check
     np.testing.assert_allclose(
         mass.todense(), jax.jacfwd(system.momentum, argnums=1)(q, qd, 0.0, args)
     )
@@ -161,17 +164,17 @@ def test_missed_entry_is_refused_never_wrong():
 
 
 class _PlainSolve(cjax.AbstractSaddlePointSolver):
-    """A user's structured solver with no special care for NaN: `jnp.linalg.solve`
-    of the full KKT matrix, never `singular`."""
+    """A user's solver that takes the detected patterns, with no special care for
+    NaN: `jnp.linalg.solve` of the full KKT matrix, never `singular`."""
 
-    def structured(self):
-        return True
+    def form(self, n, k):
+        return cjax.KKTForm(sparse=True, unroll=False)
 
-    def solve(self, mass, jac, rhs, bias):
-        mass, jac = (m.todense() if hasattr(m, "todense") else m for m in (mass, jac))
-        n, k = rhs.shape[0], bias.shape[0]
+    def solve(self, system, fill):
+        mass, jac = system.mass.todense(), system.jac.todense()
+        n, k = system.n, system.k
         kkt = jnp.block([[mass, -jac.T], [jac, jnp.zeros((k, k), mass.dtype)]])
-        sol = jnp.linalg.solve(kkt, jnp.concatenate([rhs, -bias]))
+        sol = jnp.linalg.solve(kkt, jnp.concatenate([system.rhs, -system.bias]))
         return sol[:n], sol[n:], jnp.array(False)
 
 
@@ -182,9 +185,8 @@ class _PlainSolve(cjax.AbstractSaddlePointSolver):
 )
 def test_missed_entry_is_refused_by_every_structured_solver(solver):
     """The refusal of a missed entry with each solver that takes the detected
-    patterns: the library's report the NaN right-hand side it gets as `singular`
-    with zeros; a solver of the user's (NaN out, never `singular`) has its solution
-    masked by the system."""
+    patterns, a solver of the user's (never `singular`) included: the library's one
+    solve refuses the system (`singular`, zeros) whatever the solver returns."""
     base = _switched_system()
     system = cjax.LagrangianSystem(
         base.lagrangian, base.constraints, saddle_point_solver=solver
@@ -337,10 +339,13 @@ def test_assembly_follows_the_solver_scalar_or_array():
     (`SparseSchur`, `n + k = 12`) assembles on arrays, `RangeSpaceLDL(unroll_max=12)`
     on scalars. The two, and LAPACK's LU on dense matrices, agree to round-off, one
     state and a batch, with the pattern check on."""
-    assert Automatic().unrolled(3, 2) and not Automatic().unrolled(8, 4)
-    assert RangeSpaceLDL(unroll_max=12).unrolled(8, 4)
-    assert not RangeSpaceLDL().unrolled(10, 5) and not SparseSchur().unrolled(2, 1)
-    assert FullKKTLU().unrolled(8, 4) and not FullKKTLU(unroll_max=0).unrolled(2, 1)
+    assert Automatic().form(3, 2).unroll and not Automatic().form(8, 4).unroll
+    assert RangeSpaceLDL(unroll_max=12).form(8, 4).unroll
+    assert not RangeSpaceLDL().form(10, 5).unroll
+    assert not SparseSchur().form(2, 1).unroll
+    assert (
+        FullKKTLU().form(8, 4).unroll and not FullKKTLU(unroll_max=0).form(2, 1).unroll
+    )
     args = chain.default_args()
     states = [chain.state(4, th, args, thetadot0=0.5 + th) for th in (0.1, 0.3, 0.7)]
     q = jnp.stack([s_[0] for s_ in states])
@@ -356,12 +361,14 @@ def test_assembly_follows_the_solver_scalar_or_array():
             # The two assemblies of the sparse patterns: gathers of the compressed
             # products (arrays) or static slices of them (scalars).
             assembly = jax.make_jaxpr(
-                lambda q_, qd_, s_=system: s_._equations(
+                lambda q_, qd_, s_=system: s_.saddle_point_system(
                     q_, qd_, jnp.asarray(0.0), args
                 )
             )(q[0], qd[0])
             default = jax.make_jaxpr(
-                lambda q_, qd_: base._equations(q_, qd_, jnp.asarray(0.0), args)
+                lambda q_, qd_: base.saddle_point_system(
+                    q_, qd_, jnp.asarray(0.0), args
+                )
             )(q[0], qd[0])
             assert "gather" in str(default) and "gather" not in str(assembly)
         batch = jax.jit(jax.vmap(fn))(q, qd)
@@ -418,8 +425,8 @@ def test_sparse_range_space_equals_dense_elimination():
     rhs, bias = rng.normal(size=n), rng.normal(size=k)
     sparse_mass = SparseMatrix.from_dense(mass, mass_pattern)
     sparse_jac = SparseMatrix.from_dense(jac, jac_pattern)
-    x_s, lam_s, sing_s = RangeSpaceLDL().solve(sparse_mass, sparse_jac, rhs, bias)
-    x_d, lam_d, sing_d = RangeSpaceLDL().solve(
+    x_s, lam_s, sing_s = solve_with(RangeSpaceLDL())(sparse_mass, sparse_jac, rhs, bias)
+    x_d, lam_d, sing_d = solve_with(RangeSpaceLDL())(
         jnp.asarray(mass), jnp.asarray(jac), rhs, bias
     )
     assert not sing_s and not sing_d
@@ -430,16 +437,24 @@ def test_sparse_range_space_equals_dense_elimination():
     np.testing.assert_allclose(np.concatenate([x_s, lam_s]), ref, rtol=1e-12)
 
 
+def _kkt(mass, k):
+    """A saddle-point system with the mass block `mass` and `k` dense rows."""
+    n = mass.shape[0]
+    jac = SparseMatrix.dense(jnp.ones((k, n)))
+    return cjax.SaddlePointSystem(mass, jac, jnp.zeros(n), jnp.zeros(k))
+
+
 def test_automatic_choice():
     auto = Automatic()
+    small = SparseMatrix.from_dense(np.eye(3), np.eye(3, dtype=bool))
     diag = SparseMatrix.from_dense(np.eye(20), np.eye(20, dtype=bool))
-    assert isinstance(auto.choose(diag, 3, 2), RangeSpaceLDL)
-    assert isinstance(auto.choose(diag, 20, 10), SparseSchur)
-    assert isinstance(auto.choose(jnp.eye(20), 20, 10), FullKKTLU)
+    assert isinstance(auto.choose(_kkt(small, 2)), RangeSpaceLDL)
+    assert isinstance(auto.choose(_kkt(diag, 10)), SparseSchur)
+    assert isinstance(auto.choose(_kkt(SparseMatrix.dense(jnp.eye(20)), 10)), FullKKTLU)
     coupled = np.eye(20, dtype=bool)
     coupled[0, 19] = coupled[19, 0] = True
     assert isinstance(
-        auto.choose(SparseMatrix.from_dense(np.eye(20), coupled), 20, 10), FullKKTLU
+        auto.choose(_kkt(SparseMatrix.from_dense(np.eye(20), coupled), 10)), FullKKTLU
     )
     assert isinstance(chain.system().saddle_point_solver, Automatic)
 
@@ -448,9 +463,10 @@ def test_larger_chain_uses_sparse_matrices_and_agrees():
     args = chain.default_args()
     q, qd = chain.state(6, 0.5, args, thetadot0=0.9)
     system = chain.system()
-    mass, _, jac, _, _ = system._equations(q, qd, jnp.asarray(0.0), args)
-    assert isinstance(mass, SparseMatrix) and len(mass.values) == 12
-    assert isinstance(jac, SparseMatrix) and len(jac.values) == 22
+    kkt = system.saddle_point_system(q, qd, jnp.asarray(0.0), args)
+    mass, jac = kkt.mass, kkt.jac
+    assert not mass.is_dense and len(mass.values) == 12
+    assert not jac.is_dense and len(jac.values) == 22
     _assert_same(system, q, qd, jnp.asarray(0.0), args)
 
 

@@ -3,15 +3,17 @@ Lineax solvers for the KKT matrices of extremization and of discretized function
 saddle-point solvers for constrained mechanics, and the Newton iteration on the KKT
 residual."""
 
+from .automatic import Automatic as Automatic
 from .block_tridiagonal import BorderedBlockTridiagonal as BorderedBlockTridiagonal
 from .dense_lu import DenseLU as DenseLU
 from .equilibrated_lu import EquilibratedDenseLU as EquilibratedDenseLU
+from .full_kkt_lu import FullKKTLU as FullKKTLU
 from .minres import MINRES as MINRES
 from .newton import AbstractKKTSolver as AbstractKKTSolver, Newton as Newton
+from .range_space_ldl import RangeSpaceLDL as RangeSpaceLDL
 from .saddle_point import (
     AbstractSaddlePointSolver as AbstractSaddlePointSolver,
-    Automatic as Automatic,
-    FullKKTLU as FullKKTLU,
-    RangeSpaceLDL as RangeSpaceLDL,
+    KKTForm as KKTForm,
+    SaddlePointSystem as SaddlePointSystem,
 )
 from .sparse_schur import SparseSchur as SparseSchur

@@ -24,20 +24,12 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array
 
-from .saddle_point import (
-    _dot,
-    _entries,
-    _max_abs,
-    _minus_sum,
-    nan_on_singular,
-    schur_solve_unrolled,
-)
-from .sparse import matvec as _mul, SparseMatrix
+from .ldl import dot, max_abs, minus_sum, schur_solve_unrolled
 
 
 def is_diagonal(mass) -> bool:
-    """Whether `mass` is a `SparseMatrix` whose pattern lies on the diagonal."""
-    return isinstance(mass, SparseMatrix) and all(
+    """Whether the pattern of `mass` (a `SparseMatrix`) lies on the diagonal."""
+    return not mass.is_dense and all(
         i == j for i, j in zip(mass.rows, mass.cols, strict=True)
     )
 
@@ -52,11 +44,7 @@ def _diagonal(mass, n: int) -> list:
 
 def coupled_columns(jac, n: int) -> np.ndarray:
     """The columns of `A` that are not structurally zero (trace-time booleans)."""
-    if isinstance(jac, SparseMatrix):
-        out = np.zeros((n,), bool)
-        out[list(jac.cols)] = True
-        return out
-    return np.full((n,), jac.shape[0] > 0)
+    return np.any(jac.pattern(), axis=0) if jac.shape[0] else np.zeros((n,), bool)
 
 
 def _zero_mass_threshold(d: list, n: int):
@@ -65,7 +53,7 @@ def _zero_mass_threshold(d: list, n: int):
     present = [v for v in d if v is not None]
     if not present:
         return None
-    scale = _max_abs(present)
+    scale = max_abs(present)
     return 10 * n * jnp.finfo(scale.dtype).eps * scale
 
 
@@ -107,9 +95,8 @@ def stack_by_select(values: list) -> Array:
     The same values, exactly. Under `jax.vmap` a stack of per-state scalars is a
     concatenate along the minor axis, which XLA:CPU writes in the transposed layout
     and then copies into the output's; the `where`s are elementwise and write the
-    output in place (one pass over the batch fewer: two cylinders, 1e4 states,
-    1.20x -> 1.03x the hand-written equations on one thread). On a single state the
-    plain `jnp.stack` is the cheaper, so the batched path alone uses this.
+    output in place (one pass over the batch fewer). On a single state the plain
+    `jnp.stack` is the cheaper, so the batched path alone uses this.
     """
     index = lax.iota(np.int32, len(values))
     out = jnp.broadcast_to(values[-1], (len(values),))
@@ -152,25 +139,23 @@ def _reciprocal_vector(mass, jac, n: int):
     return inv, index, small
 
 
-def diagonal_range_space(
-    mass, jac, rhs, bias, stack=jnp.stack, nan_x=False, recip=None
-):
+def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack, fill=0.0, recip=None):
     """The fast path, assuming `needs_general` is false: `(x, lambda, singular)`.
 
     `singular` flags a vanishing pivot of `A D^-1 A^T` (below `10 k eps` of its
     largest entry: redundant constraints), a force on a massless coordinate that
-    nothing couples to (`|f_i| > 100 n eps max|f|`) and a non-finite result; `x` and
-    `lambda` are then zeros (`x` NaN with `nan_x`, see `diagonal_solve`).
+    nothing couples to (`|f_i| > 100 n eps max|f|`) and a non-finite result; `x` is
+    then `fill` and `lambda` zero.
     `stack` assembles `x` and `lambda` from their entries (`stack_by_select` under
     `jax.vmap`). `recip`: `reciprocals(mass, jac, n)`, if computed already (`mass`
     is then not read).
     """
     n, k = rhs.shape[0], bias.shape[0]
-    a = _entries(jac, (k, n))
+    a = jac.entries()
     inv, small = reciprocals(mass, jac, n) if recip is None else recip
     f = [rhs[i] for i in range(n)]
     zero = jnp.zeros_like(rhs[0])
-    tol = 100 * n * jnp.finfo(rhs.dtype).eps * _max_abs(f)
+    tol = 100 * n * jnp.finfo(rhs.dtype).eps * max_abs(f)
     inconsistent = jnp.array(False)
     for i in range(n):
         if small[i] is not None:
@@ -183,11 +168,11 @@ def diagonal_range_space(
     else:
         # D^-1 A^T, row by row of A.
         y = [[None if v is None else v * inv[i] for i, v in enumerate(r)] for r in a]
-        schur = [[_dot(y[r], a[s]) for s in range(k)] for r in range(k)]
+        schur = [[dot(y[r], a[s]) for s in range(k)] for r in range(k)]
         # Its non-finite solutions are reported below (one constraint: no pivot
         # test, see `schur_solve_unrolled`).
         lam, breakdown = schur_solve_unrolled(
-            schur, [_minus_sum(-bias[r], [_dot(y[r], f)]) for r in range(k)]
+            schur, [minus_sum(-bias[r], [dot(y[r], f)]) for r in range(k)]
         )
         lam = [zero if v is None else v for v in lam]
         x = []
@@ -195,14 +180,14 @@ def diagonal_range_space(
             if inv[i] is None:
                 x.append(zero)
                 continue
-            coupling = _dot([a[r][i] for r in range(k)], lam)
+            coupling = dot([a[r][i] for r in range(k)], lam)
             x.append((f[i] if coupling is None else f[i] + coupling) * inv[i])
         singular = breakdown | inconsistent
     # Elementwise on the scalars: a reduction over a stacked array would cost XLA
     # separate passes over the batch.
     finite = [jnp.isfinite(v) for v in x + lam]
     singular = singular | jnp.invert(functools.reduce(jnp.logical_and, finite))
-    fill = jnp.full_like(zero, jnp.nan) if nan_x else zero
+    fill = zero if fill == 0 else jnp.full_like(zero, fill)
     x = stack([jnp.where(singular, fill, v) for v in x])
     lam = stack([jnp.where(singular, zero, v) for v in lam]) if k else zeros_lam
     return x, lam, singular
@@ -223,9 +208,7 @@ def _batch_last(args, in_batched):
     are computed as separate loops over the batch, each written as a contiguous run:
     the layout of shape `(k, n, N)`. Passed as `(N, k, n)`, the branch copies it into
     the default layout first (one pass over the batch per operand); passed as
-    `(k, n, N)`, it is the same memory and XLA drops the transposes. (Two cylinders,
-    1e4 states, one thread: 1.02x -> 0.95x the hand-written equations; the pendulum
-    1.28x -> 1.12x; at 1e6 states 2.1x -> 1.9x and 1.4x -> 1.1x.)"""
+    `(k, n, N)`, it is the same memory and XLA drops the transposes."""
     flags = jax.tree.leaves(in_batched)
     leaves, treedef = jax.tree.flatten(args)
     moves = [bool(b) and np.ndim(x) >= 2 for x, b in zip(leaves, flags, strict=True)]
@@ -243,16 +226,14 @@ def _batch_last(args, in_batched):
     return moved, back
 
 
-def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
+def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
     """Solves the saddle-point system for a diagonal `SparseMatrix` `mass`: the fast
-    path where it applies, else `general(mass, jac, rhs, bias)`, one `lax.cond` per
-    call (per batch under `jax.vmap`).
+    path where it applies, else `general(mass, jac, rhs, bias)` (which applies `fill`
+    itself), one `lax.cond` per call (per batch under `jax.vmap`).
 
-    With `nan_x`, a `singular` solve has `x` NaN instead of zero (as `simulate`'s
-    vector field wants it, to reject the step): set inside the branches, where XLA
-    fuses it into the solve, instead of by a `where` on the `lax.cond`'s output (a
-    kernel more per call, and more kernels in the branches, which then output the
-    flag apart: see `AbstractSaddlePointSolver._solve_nan_x`).
+    A `singular` solve has `x = fill`, set inside the branches, where XLA fuses it
+    into the solve (a `where` on the `lax.cond`'s output would be a kernel more per
+    call, and the branches would output the flag apart).
 
     Differentiable in forward and reverse mode: the tangents solve the same system
     (`lax.custom_linear_solve`, so that they transpose). On a free gauge coordinate
@@ -262,9 +243,8 @@ def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
     massless coordinate), which makes the map `P S P` and its transpose `P S^T P`.
     """
     n = rhs.shape[0]
-    fast_path = functools.partial(diagonal_range_space, nan_x=nan_x)
-    if nan_x:
-        general = nan_on_singular(general)
+    fast_path = functools.partial(diagonal_range_space, fill=fill)
+    filled = fill != 0
 
     def general_branch(mass, recip, jac, rhs, bias):
         del recip
@@ -287,9 +267,7 @@ def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
         # for constant `args`); the operands cross into the branches behind
         # optimization barriers, so that their entries are read inside, fused into
         # the solve, and not each sliced out before the `lax.cond` as a kernel of
-        # its own (two cylinders, one trajectory: 3.3 -> 2.8 us per step; the
-        # reciprocals as one vector, a kernel in all: the call in a loop 240 ->
-        # 209 ns, `benchmarks/README.md`).
+        # its own (the reciprocals as one vector: one kernel in all).
         return lax.cond(
             needs_general(mass, jac, n),
             general_branch,
@@ -330,22 +308,22 @@ def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
         mass, jac, rhs, bias = primals
         dmass, djac, drhs, dbias = tangents
         x_out, lam, singular = solve(mass, jac, rhs, bias)
-        # The solution with zeros where singular (`nan_x` fills `x` with NaN), so
-        # that no NaN enters the tangents (nor, transposed, the cotangents).
-        x = jnp.where(singular, 0.0, x_out) if nan_x else x_out
+        # The solution with zeros where singular (not `fill`), so that no NaN
+        # enters the tangents (nor, transposed, the cotangents).
+        x = jnp.where(singular, 0.0, x_out) if filled else x_out
         # K z = r, K = [[M, -A^T], [A, 0]]: K dz = dr - dK z.
         dr = jnp.concatenate(
             [
-                drhs - _mul(dmass, x) + _mul(djac, lam, transpose=True),
-                -dbias - _mul(djac, x),
+                drhs - dmass.matvec(x) + djac.matvec(lam, transpose=True),
+                -dbias - djac.matvec(x),
             ]
         )
 
         def matvec(z):
             return jnp.concatenate(
                 [
-                    _mul(mass, z[:n]) - _mul(jac, z[n:], transpose=True),
-                    _mul(jac, z[:n]),
+                    mass.matvec(z[:n]) - jac.matvec(z[n:], transpose=True),
+                    jac.matvec(z[:n]),
                 ]
             )
 
@@ -358,7 +336,7 @@ def diagonal_solve(mass, jac, rhs, bias, general, nan_x=False):
             project = lambda r: r
 
         def zeroed(x_, lam_, singular_):
-            return jnp.where(singular_, 0.0, x_) if nan_x else x_, lam_
+            return jnp.where(singular_, 0.0, x_) if filled else x_, lam_
 
         def kkt_solve(_, r):
             dx, dlam = zeroed(*solve(mass, jac, project(r[:n]), -r[n:]))

@@ -18,13 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .saddle_point import (
-    AbstractSaddlePointSolver,
-    FullKKTLU,
-    ldl_factor_unrolled,
-    ldl_solve_unrolled,
-)
-from .sparse import as_dense, SparseMatrix
+from .full_kkt_lu import FullKKTLU
+from .ldl import ldl_factor_unrolled, ldl_solve_unrolled
+from .saddle_point import AbstractSaddlePointSolver, KKTForm
 
 
 # The largest block of `M` factored by unrolled elimination (trace and compile time
@@ -517,8 +513,8 @@ class SparseSchur(AbstractSaddlePointSolver):
 
         S lambda = -b - A M^-1 f,    S = A M^-1 A^T,    x = M^-1 (f + A^T lambda).
 
-    `mass` and `jac` are `SparseMatrix` (internal: `_solver/sparse.py`), or dense
-    arrays, for which this is dense. At trace time, from their static patterns: the
+    It takes `M` and `A` with their detected sparsity patterns (full patterns are
+    solved densely). At trace time, from the static patterns: the
     blocks of `M` (the connected components of its pattern), the pattern of `S`, and an
     elimination order of `S` in levels of independent pivots (multiple minimum
     degree: each level eliminates a maximal independent set of nodes of degree at
@@ -540,25 +536,22 @@ class SparseSchur(AbstractSaddlePointSolver):
     in a second one): `O(k w^2)`, a program of fixed size whatever `k`. On a chain
     `w = 1` and it is the Thomas algorithm. `method="auto"` (the default) takes the
     scan where `w <= 8` and the levels otherwise (a star, whose hub is coupled to
-    every row, or a wide tree), as measured on CPU (`benchmarks/sparse_schur.py`):
-    on the chain the scan compiles 2 to 10 times faster (0.8 s against 3.0 s at
-    `N = 256`, 1.0 s against 11.5 s at `N = 1024`) and runs as fast or faster,
-    single and batched; on a 2D truss of bandwidth 5 it runs 3.6 times faster (the
-    levels degenerate to 130 and take 42 s to compile); on a binary tree
-    (bandwidth 64) it is 60 times slower.
+    every row, or a wide tree): on a chain or a narrow truss the scan compiles and
+    runs faster (the levels of a truss degenerate into many), on a wide tree far
+    slower (`benchmarks/sparse_schur.py` measures both).
 
     **What it needs.** `M` block-diagonal (after a symmetric permutation) with a
     structurally nonzero diagonal and positive definite blocks, and `A` of full row
     rank. A pivot of a block of `M` at or below `10 n eps max|M|` (a zero or negative
     mass, e.g. set through `args`), a pivot of `S` at or below `10 k eps max|S|`
-    (redundant constraints), or a non-finite result is reported `singular` (zeros
-    returned): unlike [`constrained_jax.RangeSpaceLDL`][] it does not solve free gauge
-    directions. Last, the whole KKT system is checked in `O(nnz)`, block row by block
-    row: `max|M x - A^T lambda - f| <= 100 (n + k) eps max(|M||x| + |A^T||lambda| +
-    |f|)` and `max|A x + b| <= 100 (n + k) eps max(|A| |M^-1| (|f| + |A^T||lambda|) +
-    |b|)`; a solution that fails it is `singular`, so a breakdown of the pivot-free
-    elimination (an indefinite `M`) never returns a wrong answer. A pattern whose `M`
-    has a structurally zero diagonal or a block larger than 12 is solved densely by
+    (redundant constraints), or a non-finite result is reported `singular`: unlike
+    [`constrained_jax.RangeSpaceLDL`][] it does not solve free gauge directions. Last,
+    the whole KKT system is checked in `O(nnz)`, block row by block row: `max|M x - A^T
+    lambda - f| <= 100 (n + k) eps max(|M||x| + |A^T||lambda| + |f|)` and `max|A x + b|
+    <= 100 (n + k) eps max(|A| |M^-1| (|f| + |A^T||lambda|) + |b|)`; a solution that
+    fails it is `singular`, so a breakdown of the pivot-free elimination (an indefinite
+    `M`) never returns a wrong answer. A pattern whose `M` has a structurally zero
+    diagonal or a block larger than 12 is solved densely by
     [`constrained_jax.FullKKTLU`][].
 
     **References:** J. Nocedal and S. J. Wright, *Numerical Optimization*, 2nd ed.,
@@ -579,27 +572,18 @@ class SparseSchur(AbstractSaddlePointSolver):
 
     method: str = eqx.field(default="auto", static=True)
 
-    def structured(self) -> bool:
-        return True
+    def form(self, n: int, k: int) -> KKTForm:
+        return KKTForm(sparse=True, unroll=False)
 
-    def reports_non_finite(self) -> bool:
-        return True
-
-    def unrolled(self, n: int, k: int) -> bool:
-        return False
-
-    def solve(self, mass, jac, rhs, bias):
-        if not (isinstance(mass, SparseMatrix) and isinstance(jac, SparseMatrix)):
-            return FullKKTLU(unroll_max=0).solve(
-                as_dense(mass), as_dense(jac), rhs, bias
-            )
+    def solve(self, system, fill):
+        mass, jac, rhs, bias = system.mass, system.jac, system.rhs, system.bias
+        if mass.is_dense or jac.is_dense:
+            return FullKKTLU(unroll_max=0).solve(system, fill)
         plan = _plan(
             (mass.rows, mass.cols, mass.shape), (jac.rows, jac.cols, jac.shape)
         )
         if plan.dense:
-            return FullKKTLU(unroll_max=0).solve(
-                mass.todense(), jac.todense(), rhs, bias
-            )
+            return FullKKTLU(unroll_max=0).solve(system, fill)
         n, k = plan.n, plan.k
         dtype = jnp.result_type(mass.values, jac.values, rhs, bias)
         eps = jnp.finfo(dtype).eps
@@ -650,4 +634,5 @@ class SparseSchur(AbstractSaddlePointSolver):
             ok = ok & (jnp.max(jnp.abs(residual)) <= tol * jnp.max(size))
         finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(lam))
         singular = bad | jnp.invert(ok) | jnp.invert(finite)
-        return jnp.where(singular, 0.0, x), jnp.where(singular, 0.0, lam), singular
+        fill_x = 0.0 if fill == 0 else jnp.asarray(fill, x.dtype)
+        return jnp.where(singular, fill_x, x), jnp.where(singular, 0.0, lam), singular
