@@ -78,9 +78,9 @@ CYLINDERS_T1 = 0.8
 # The batch: release angles uniform in this range (all still attached at t = 0.8 s).
 CYLINDERS_BATCH_THETA0 = (0.2, 0.3)
 
-# Tolerances (rtol = atol) chosen by a scan so that the final-state error is ~1e-8
-# (see benchmarks/README.md). The Cartesian pendulum needs much tighter tolerances
-# than its error suggests: 10 periods of phase error accumulate.
+# Tolerances (rtol = atol) chosen by a scan so that the final-state error is ~1e-8.
+# The Cartesian pendulum needs much tighter tolerances than its error suggests: 10
+# periods of phase error accumulate.
 JAX_TOLERANCES = {"pendulum": 1e-11, "cylinders": 1e-8}
 SCIPY_TOLERANCES = {"pendulum": 5e-12, "cylinders": 5e-9}
 SCIPY_METHOD = "DOP853"

@@ -151,8 +151,8 @@ def measure(opts) -> list[dict]:
         "x",
     )
     # The two one-trajectory programs again, called in turn (`time_jax_interleaved`,
-    # 20x the repeats): a slow period of the machine hits both alike. Timed apart
-    # (above), this ratio swung between 0.87x and 2.04x from run to run.
+    # 20x the repeats): a slow period of the machine hits both alike, where timed
+    # apart (above) the ratio swings from run to run.
     theta0 = jnp.asarray(dynamics.CYLINDERS_THETA0)
     tol = dynamics.JAX_TOLERANCES["cylinders"]
     _, both = time_jax_interleaved(
@@ -271,9 +271,9 @@ def measure(opts) -> list[dict]:
         "x",
     )
     # In one process the default compiles first and LAPACK's second, in a process
-    # that has already traced and compiled most of the library (0.72-1.17x over the
-    # runs in `benchmarks/README.md`): printed, not judged. A first call of each in
-    # its own fresh process, the two alternating, is the fair comparison, judged.
+    # that has already traced and compiled most of the library: printed, not judged.
+    # A first call of each in its own fresh process, the two alternating, is the fair
+    # comparison, judged.
     row("  same, compile (this process)", "4.3x", compile_ratio, "<= 1x", None, "x")
     fresh = {"default": [], "lapack": []}
     for i in range(opts.rounds):
