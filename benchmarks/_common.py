@@ -95,12 +95,9 @@ def time_jax_interleaved(fns: dict, *args, repeats: int, block: int = 1):
     With `block > 1` each round calls every function `block` times in a row and
     records all but the first of them: each function's time in its own steady state,
     as a loop or a sweep calling it sees it. With XLA's threads a single call's time
-    depends on the program called before it: on the 2-core machine the same batched
-    program, compiled twice and called singly in a fixed order, read 1.05-1.09x the
-    hand-written one right after it and 1.00-1.02x right after itself
-    (`benchmarks/README.md`, seventh session). Neither the reversed rounds nor blocks
-    remove that entirely (identical programs still differ by up to 0.15x within one
-    process): compare such programs over several processes.
+    depends on the program called before it. Neither the reversed rounds nor blocks
+    remove that entirely (identical programs can differ within one process): compare
+    such programs over several processes.
     """
     if block < 1:
         raise ValueError(f"block must be >= 1, got {block}")

@@ -22,7 +22,7 @@ to the first setting. Each child measures (float64, after compilation; medians o
   the forward solve (`gradients.cylinders_attached`); the N-link chain's equations of
   motion at N = 256 over 1,000 states (`chain.eom`); one trajectory of the 4- and
   16-link chains (`chain.trajectory`); the pendulum over 20 s and the two cylinders
-  with the release event over 3 s (`ab.py`'s `sim pendulum 20s`, `sim release 1`).
+  with the release event over 3 s (`dev/ab.py`'s `sim pendulum 20s`, `sim release 1`).
 
     python benchmarks/code_generator.py [--rounds 3] [--repeats 15] [--no-release]
         [--settings default,fast]
@@ -94,6 +94,7 @@ def child(setting: str, repeats: int, release: bool) -> dict:
     for links in (4, 16):
         run = chain.trajectory(links, None, repeats)
         out[f"chain N = {links}, one trajectory ms"] = run["median_s"] * 1e3
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "dev"))
     import ab
     from _common import time_jax
 

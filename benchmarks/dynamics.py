@@ -78,9 +78,9 @@ CYLINDERS_T1 = 0.8
 # The batch: release angles uniform in this range (all still attached at t = 0.8 s).
 CYLINDERS_BATCH_THETA0 = (0.2, 0.3)
 
-# Tolerances (rtol = atol) chosen by a scan so that the final-state error is ~1e-8
-# (see README.md). The Cartesian pendulum needs much tighter tolerances than its error
-# suggests: 10 periods of phase error accumulate.
+# Tolerances (rtol = atol) chosen by a scan so that the final-state error is ~1e-8.
+# The Cartesian pendulum needs much tighter tolerances than its error suggests: 10
+# periods of phase error accumulate.
 JAX_TOLERANCES = {"pendulum": 1e-11, "cylinders": 1e-8}
 SCIPY_TOLERANCES = {"pendulum": 5e-12, "cylinders": 5e-9}
 SCIPY_METHOD = "DOP853"
@@ -192,8 +192,7 @@ def accelerations_benchmark(
 ) -> dict:
     """The batched equations of motion, every variant timed in `repeats` rounds of
     `block` calls in a row (`time_jax_interleaved`): each program in its own steady
-    state, as a sweep calling it sees it, and as the first version of this benchmark
-    timed it (each variant's calls in a row). Called singly in turn, a program's time
+    state, as a sweep calling it sees it. Called singly in turn, a program's time
     with XLA's threads depends on the program called before it."""
     module = pend if scene == "pendulum" else cyl
     system = module.system()
@@ -209,7 +208,7 @@ def accelerations_benchmark(
 
     variants = {
         **eom_variants(scene, t),
-        # Ablation: the previous default, a pivoted LU of the whole KKT matrix.
+        # Ablation: a pivoted LU of the whole KKT matrix.
         "ablation: FullKKTLU (pivoted LU)": lambda q, qd, args: jax.vmap(
             lambda q_, qd_: system_lu.solve_accelerations(q_, qd_, t, args)[:2]
         )(q, qd),

@@ -1,12 +1,11 @@
 """The batched equations of motion on XLA's threads and on one, from 1e3 to 1e6 states.
 
-Issue 12's first two rows time `jax.jit(jax.vmap(...))` of the equations of motion
-over 10,000 states, ours (`solve_accelerations`) against the hand-written closed
-forms of `dynamics.py`. On the 2-core machine these programs are small enough that
-XLA:CPU's threading decides their time: a loop that XLA splits across its two
-threads waits for the other one, and the run-to-run swing of the ratio (1.0x to 1.7x)
-is as large as what the targets ask. This script measures both settings in fresh
-processes, alternating, `--rounds` each:
+`jax.jit(jax.vmap(...))` of the equations of motion over a batch of states, ours
+(`solve_accelerations`) against the hand-written closed forms of `dynamics.py`. On a
+small machine these programs are small enough that XLA:CPU's threading decides their
+time: a loop that XLA splits across its threads waits for the slowest one, and the
+ratio swings from run to run. This script measures both settings in fresh processes,
+alternating, `--rounds` each:
 
 - `threads`: XLA's default (as many threads as the process may use);
 - `one thread`: the process pinned to one CPU (`os.sched_setaffinity`, before JAX
@@ -19,12 +18,9 @@ and the hand-written closed form. Reported: nanoseconds per state and the ratio 
 hand-written program of the same process; medians over the rounds.
 
 Why blocks: with XLA's threads a single call's time depends on the program called
-before it. Our pendulum program compiled twice, called singly in a fixed order in one
-process, read 1.05-1.09x the hand-written one right after it and 1.00-1.02x right
-after itself. Blocks time each program in its own steady state, as a sweep calling it
-sees it (and as the first version of `dynamics.py` timed them, each variant's calls in
-a row); the rounds alternate their order. Identical programs still differ by up to
-0.15x within one process with XLA's threads: read the medians over processes.
+before it. Blocks time each program in its own steady state, as a sweep calling it
+sees it; the rounds alternate their order. Identical programs can still differ within
+one process with XLA's threads: read the medians over processes.
 
     python benchmarks/eom_threads.py [--sizes 1000,10000,100000,1000000]
         [--rounds 3] [--block 10] [--out benchmarks/results]

@@ -48,8 +48,8 @@ from constrained_jax.scenes import cylinder_volume as cyl  # noqa: E402
 
 SEED = 0
 
-# SciPy settings, chosen by hand so that SciPy's error against the reference is
-# about 1e-8 or better (see README.md for the search). SciPy's stopping tests are
+# SciPy settings, tightened by hand until SciPy's error against the reference is
+# about 1e-8 or better where it gets there. SciPy's stopping tests are
 # absolute in the objective, so the objective is scaled to be O(1) at the start point
 # (a per-problem constant that does not use the solution).
 SLSQP_OPTIONS = {"ftol": 1e-16, "maxiter": 1000}

@@ -57,7 +57,7 @@ T1_RELEASE = 1.2
 TOL = 1e-8  # benchmarks/dynamics.py: JAX_TOLERANCES["cylinders"]
 NUM_EXTREMIZE = 10_000
 CATENARY = (0.0, 0.0, 1.0, 0.5, 2.0, 2.5)  # xl, yl, xr, yr, length, rho_g
-RECURSIVE = diffrax.RecursiveCheckpointAdjoint()  # the default before issue 12
+RECURSIVE = diffrax.RecursiveCheckpointAdjoint()  # diffrax's default adjoint
 
 
 def _cylinder_run(system, t1, adjoint):

@@ -14,9 +14,6 @@ projection (Held, Wolfe and Crowder 1974; Duchi et al. 2008). For `n` states:
    Hessians, the error of each against the exact solution reported beside its time;
 2. batches of 100 and 1,000 problems with different `c`: one
    `jax.jit(jax.vmap(...))` call against a SciPy loop (timed on 20 and scaled).
-   (Batches of 200 or more used to hang inside XLA's CPU runtime before the
-   Levenberg-Marquardt direction moved from a second LU to conjugate gradients;
-   see `docs/sharp-edges.md`.)
 
 SciPy's tolerances are tightened until its error is about 1e-8 or better (its tests
 are absolute; the objective is O(1) here).

@@ -1,5 +1,5 @@
-"""The table of issue 12 ("speed that scales with the system"), every row measured in
-this one run, with its target.
+"""The summary table: the headline figures against their peers, every row measured in
+this one run, each with the project's goal for it.
 
 Rows (float64, after compilation, medians; ratios within this run):
 
@@ -10,9 +10,9 @@ Rows (float64, after compilation, medians; ratios within this run):
    blocks of 10 calls in a row, the blocks alternating (`time_jax_interleaved`'s
    `block`): with XLA's threads a single call's time depends on the program called
    before it. `--single-calls` also measures the fresh-process rows called singly in
-   turn (how the sixth session measured them), for comparison. Judged: the
-   fresh-process rows in blocks; this process's ratios are printed, not judged (with
-   XLA's threads identical programs read up to 0.15x apart in one process).
+   turn, for comparison. Judged: the fresh-process rows in blocks; this process's
+   ratios are printed, not judged (with XLA's threads identical programs can read
+   apart in one process).
 2. One two-cylinder trajectory (`t in [0, 0.8]`): SymPy `LagrangesMethod` + SciPy
    DOP853 / ours, ours / `diffrax.diffeqsolve` on the hand-written right-hand side
    (the two called in turn, `time_jax_interleaved`);
@@ -22,7 +22,7 @@ Rows (float64, after compilation, medians; ratios within this run):
    and of the tour's two-cylinder program with the release event
    (`compile_time.py`, cache off), and for scale the floor: `diffrax.diffeqsolve` of
    the hand-written field with the solver and saves of the first (the machine's
-   compile speed has moved 15 % between days).
+   compile speed moves from day to day).
 4. Reverse-mode `d theta1(t1) / dI` through `simulate` / the forward solve
    (`gradients.py`).
 5. The N-link chain (`chain.py`): EOM per state at `N = 256` (`vmap` over 1,000
@@ -34,10 +34,11 @@ Rows (float64, after compilation, medians; ratios within this run):
     python benchmarks/targets.py [--out benchmarks/results] [--fast-compilation]
         [--loop-kernels]
 
-Writes `targets.json` and prints the table for `README.md`. `--fast-compilation`
-measures with XLA:CPU's older code generator (`cjax.use_fast_compilation()`) and
-writes `targets_fast_compilation.json`; `--loop-kernels` with small loops compiled
-into one function (`cjax.use_loop_kernels()`), `targets_loop_kernels.json` (both:
+Writes `targets.json` and prints the table for `benchmarks/README.md`.
+`--fast-compilation` measures with XLA:CPU's older code generator
+(`cjax.use_fast_compilation()`) and writes `targets_fast_compilation.json`;
+`--loop-kernels` with small loops compiled into one function
+(`cjax.use_loop_kernels()`), `targets_loop_kernels.json` (both:
 `targets_fast_compilation_loop_kernels.json`).
 """
 
@@ -80,8 +81,8 @@ def measure(opts) -> list[dict]:
         for scene in ("cylinders", "pendulum")
     }
     # One process's ratio, printed but not judged: with XLA's threads two identical
-    # programs read up to 0.15x apart in one process (`benchmarks/README.md`, the
-    # seventh session); the fresh-process medians below are judged.
+    # programs can read apart in one process; the fresh-process medians below are
+    # judged.
     r = acc["cylinders"]["methods"]["autodiff solve_accelerations"]
     row(
         "EOM two cylinders, jit(vmap) 1e4: autodiff / hand-written (this process)",
@@ -107,8 +108,8 @@ def measure(opts) -> list[dict]:
     # And with XLA's threads in fresh processes too, alternating with the pinned
     # ones: the median of the rounds, where the rows above are one process's.
     # Timed in blocks of calls (`eom_threads.BLOCK`); with `--single-calls` also
-    # called singly in turn, for comparison (the sixth session's measure): those rows
-    # are not judged (`met` is None).
+    # called singly in turn, for comparison: those rows are not judged (`met` is
+    # None).
     blocks = (eom_threads.BLOCK, 1) if opts.single_calls else (eom_threads.BLOCK,)
     children = {(pin, b): [] for pin in (True, False) for b in blocks}
     for _ in range(opts.rounds):
@@ -150,8 +151,8 @@ def measure(opts) -> list[dict]:
         "x",
     )
     # The two one-trajectory programs again, called in turn (`time_jax_interleaved`,
-    # 20x the repeats): a slow period of the machine hits both alike. Timed apart
-    # (above), this ratio swung between 0.87x and 2.04x from run to run.
+    # 20x the repeats): a slow period of the machine hits both alike, where timed
+    # apart (above) the ratio swings from run to run.
     theta0 = jnp.asarray(dynamics.CYLINDERS_THETA0)
     tol = dynamics.JAX_TOLERANCES["cylinders"]
     _, both = time_jax_interleaved(
@@ -195,9 +196,9 @@ def measure(opts) -> list[dict]:
         first["total_s"] <= 1.5,
         " s",
     )
-    # For the machine's speed on the day (compile times have moved 15 % between
-    # sessions with the program unchanged): diffrax on the hand-written field, with
-    # the solver, controller and saves of (a).
+    # For the machine's speed on the day (compile times move with the machine, the
+    # program unchanged): diffrax on the hand-written field, with the solver,
+    # controller and saves of (a).
     floor = compile_time.measure(compile_time.CASES["floor"][1], 3)
     row(
         "  (floor: diffeqsolve of the hand-written field, same solver)",
@@ -270,9 +271,9 @@ def measure(opts) -> list[dict]:
         "x",
     )
     # In one process the default compiles first and LAPACK's second, in a process
-    # that has already traced and compiled most of the library (0.72-1.17x over the
-    # runs in `benchmarks/README.md`): printed, not judged. A first call of each in
-    # its own fresh process, the two alternating, is the fair comparison, judged.
+    # that has already traced and compiled most of the library: printed, not judged.
+    # A first call of each in its own fresh process, the two alternating, is the fair
+    # comparison, judged.
     row("  same, compile (this process)", "4.3x", compile_ratio, "<= 1x", None, "x")
     fresh = {"default": [], "lapack": []}
     for i in range(opts.rounds):

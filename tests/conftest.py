@@ -2,23 +2,18 @@ import importlib.metadata
 import os
 
 
-# XLA's CPU compilation is most of this suite's time (61 % of the worker seconds in
-# `benchmarks/suite_profile.py`), and XLA:CPU's newer fusion emitters compile our
-# programs about 2x slower than its older code generator (`benchmarks/compile_time.py`:
-# the tour's pendulum 1.24 -> 0.71 s, the release program 4.23 -> 3.04 s). The
-# tests therefore compile with the older one: a clean 2-core run took 11 min 31 s of
-# pytest instead of 16 min 51 s - 18 min 08 s. Results agree to round-off; the tests
-# compare against closed forms, finite differences and invariants, never bit
-# patterns. The notebooks (`test_notebooks.py`) and the fresh processes that set
-# their own `XLA_FLAGS` run the default code generator, so the code users run stays
-# tested end to end. `CONSTRAINED_JAX_TEST_XLA_DEFAULTS=1` runs every test with
-# XLA's defaults. (Set before JAX starts its CPU backend, which reads `XLA_FLAGS`
-# once.) Each compilation is also one LLVM module, not split for parallel code
-# generation: with two workers on two cores the threads only compete (10 min 48 s ->
-# 9 min 48 s of pytest in one run each; alone, one split is slower).
-# XLA aborts the process on a flag it does not know (jaxlib 0.11.2 no longer has the
-# first one), so they are set only for the jaxlib they were measured with; any other
-# runs XLA's defaults (slower, the same results).
+# XLA:CPU's older code generator (`--xla_cpu_use_fusion_emitters=false`): compilation
+# is most of this suite's time, and the older generator compiles the library's
+# programs about twice as fast. The results agree to round-off, and the tests compare
+# against closed forms, finite differences and invariants, never bit patterns.
+# One LLVM module per compilation (`--xla_cpu_parallel_codegen_split_count=1`): with
+# two xdist workers on two cores, parallel code generation only competes for them.
+# Both are read once, when JAX starts its CPU backend, so they are set here, before.
+# The notebooks (`test_notebooks.py`) and the fresh processes that set their own
+# `XLA_FLAGS` run XLA's defaults, so the code generator users run stays tested end to
+# end; `CONSTRAINED_JAX_TEST_XLA_DEFAULTS=1` runs every test with XLA's defaults.
+# XLA aborts the process on a flag it does not know, so the flags are set only for
+# the pinned jaxlib; any other runs XLA's defaults (the same results).
 USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
 _FLAGS_KNOWN = importlib.metadata.version("jaxlib") in ("0.10.2",)
 if _FLAGS_KNOWN and os.environ.get("CONSTRAINED_JAX_TEST_XLA_DEFAULTS", "0") != "1":
@@ -42,9 +37,8 @@ import pytest  # noqa: E402
 # The tests never write JAX's persistent compilation cache: the tour run in-process
 # (`test_cli.py`) and the notebooks' kernels call `cjax.enable_compilation_cache()`,
 # which would turn it on for the rest of the worker and fill the user's
-# `~/.cache/constrained_jax` (an xdist worker crashed inside XLA while compiling with
-# the cache on). `test_compilation_cache.py` turns it on where it is the subject, in
-# subprocesses and under `monkeypatch`.
+# `~/.cache/constrained_jax`. `test_compilation_cache.py` turns it on where it is the
+# subject, in subprocesses and under `monkeypatch`.
 os.environ["CONSTRAINED_JAX_COMPILATION_CACHE"] = "0"
 
 

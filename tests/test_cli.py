@@ -1,8 +1,8 @@
 """The command line: the tour checks every scene against its closed form and draws
 its pictures; `scene NAME --param` runs one scene; failures give exit status 1.
 
-One tour runs per test module (compilation dominates: ~1 min on 2 cores); the
-`scene` tests after it reuse its compiled programs (same process)."""
+One tour runs per test module (compilation dominates its time); the `scene` tests
+after it reuse its compiled programs (same process)."""
 
 import contextlib
 import importlib.metadata

@@ -215,7 +215,7 @@ def _third_impact(e):
     return traj.events.time[2]
 
 
-@pytest.mark.slow  # (about 45 s of compilation, most of it the reverse pass)
+@pytest.mark.slow  # (long to compile, most of it the reverse pass)
 def test_gradient_of_an_impact_time():
     """`jax.grad` of t_3 through two impacts, under `jax.vmap` over e, against the
     closed form d t_3 / d e = (2 v_1 / g)(1 + 2 e), and the value
@@ -370,7 +370,7 @@ def test_careless_inputs():
         )
 
 
-@pytest.mark.slow  # (four contact modes to compile: about 20 s)
+@pytest.mark.slow  # (four contact modes to compile)
 def test_two_cylinders_detach_and_bounce_on_a_floor():
     """The lecture's two cylinders, with the contact group (contact and no slip, two
     Pfaffian rows) re-made inelastically and a floor at y = y_f below: released at

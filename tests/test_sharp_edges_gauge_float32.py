@@ -379,8 +379,8 @@ _FLOAT32_SCRIPT = textwrap.dedent(
 def test_products_are_full_precision_on_every_backend():
     """Every matrix product of a public solve, the library's and the user's functions',
     is traced at `Precision.HIGHEST` (XLA:GPU's default for float32 is TF32, about
-    1e-3 relative: the float32 sphere geodesic stalled at 256 Newton steps on an H100,
-    `benchmarks/gpu.md`). Checked on the lowered programs, so on a CPU too."""
+    1e-3 relative: enough to stall the float32 sphere geodesic's Newton solve).
+    Checked on the lowered programs, so on a CPU too."""
     from constrained_jax.scenes import cylinder_volume, sphere_geodesic
 
     def precisions(fn, *inputs):

@@ -488,8 +488,8 @@ def test_projection_uses_structure_and_agrees():
 def test_constraint_products_keep_temporaries_the_size_of_q():
     """`Holonomic.jacobian_products` applies its linearisation to a few directions
     one by one: its arithmetic runs on arrays the size of `q` (under `jax.vmap` over
-    states, temporaries `s + 1` times larger streamed through memory made the
-    chain's batched equations of motion 1.1-1.3x slower, `benchmarks/README.md`).
+    states, temporaries `s + 1` times larger would stream through memory and slow
+    the chain's batched equations of motion).
     Checked on the traced program (fails when the directions are vmapped), and the
     products against the dense Jacobian."""
     args = chain.default_args()

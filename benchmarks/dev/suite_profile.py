@@ -4,9 +4,9 @@ lowering and compiling (XLA), and how many programs it compiles.
 A pytest plugin (JAX's monitoring events, recorded per test in each xdist worker)
 and a summary by file:
 
-    PYTHONPATH=benchmarks SUITE_PROFILE_DIR=/tmp/profile \\
+    PYTHONPATH=benchmarks/dev SUITE_PROFILE_DIR=/tmp/profile \\
         python -m pytest -n 2 --dist worksteal -p suite_profile
-    python benchmarks/suite_profile.py /tmp/profile
+    python benchmarks/dev/suite_profile.py /tmp/profile
 
 Subprocesses (the notebooks' kernels, the float32 and multi-process fixtures) are
 not seen. Each worker rewrites its JSON after every test, so a crashed run still

@@ -22,9 +22,10 @@ Cases:
   default saddle-point solver and with LAPACK's LU (`FullKKTLU(unroll_max=0)`), in one
   process, that order (`targets.py`'s compile ratio).
 
-    python benchmarks/first_call.py --a 263a598 --b HEAD [--processes 3]
+    python benchmarks/dev/first_call.py --a REV --b HEAD [--processes 3]
 
-Writes `results/first_call.json`: every process's seconds and the medians.
+Writes `benchmarks/dev/results/first_call.json`: every process's seconds and the
+medians.
 """
 
 import argparse
@@ -39,7 +40,8 @@ from pathlib import Path
 from ab import export
 
 
-HERE = Path(__file__).parent
+HERE = Path(__file__).resolve().parent
+BENCHMARKS = HERE.parent  # `compile_time.py`, `chain.py`
 
 _CHILD = r"""
 import json, sys, time
@@ -87,7 +89,7 @@ print("RESULT" + json.dumps(out))
 
 
 def run_child(folder: str, case: str) -> dict:
-    code = _CHILD.format(bench=str(HERE), folder=folder, case=case)
+    code = _CHILD.format(bench=str(BENCHMARKS), folder=folder, case=case)
     env = {**os.environ, "JAX_ENABLE_COMPILATION_CACHE": "false"}
     proc = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=env

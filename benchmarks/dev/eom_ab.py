@@ -10,8 +10,8 @@ pinned to one CPU unless `--threads`; the revisions alternate over `--processes`
 rounds. Prints and stores the medians over the processes of the ratio ours /
 hand-written and of each time.
 
-    python benchmarks/eom_ab.py --a 9195da4 --b HEAD [--scene pendulum]
-        [--states 10000] [--processes 5] [--threads] [--out benchmarks/results]
+    python benchmarks/dev/eom_ab.py --a REV --b HEAD [--scene pendulum]
+        [--states 10000] [--processes 5] [--threads] [--out benchmarks/dev/results]
 
 A revision may also be a folder holding a `constrained_jax/` (a patched copy).
 """
@@ -28,6 +28,7 @@ import tempfile
 
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+BENCHMARKS = os.path.dirname(HERE)  # `_common.py`, `dynamics.py`
 
 
 def child(folder: str, scene: str, pin: bool, repeats: int, states: int) -> None:
@@ -43,7 +44,7 @@ def child(folder: str, scene: str, pin: bool, repeats: int, states: int) -> None
 
     if not os.path.abspath(constrained_jax.__file__).startswith(folder):
         raise RuntimeError(f"imported {constrained_jax.__file__}, not {folder}")
-    sys.path.insert(1, HERE)
+    sys.path.insert(1, BENCHMARKS)
     import dynamics
     from _common import time_jax_interleaved
 
@@ -162,7 +163,7 @@ def main() -> None:
     finally:
         for folder in exported:  # made by `export`, never a folder of the user's
             shutil.rmtree(folder, ignore_errors=True)
-    sys.path.insert(0, HERE)
+    sys.path.insert(0, BENCHMARKS)
     from _common import machine_info
 
     os.makedirs(opts.out, exist_ok=True)

@@ -1,8 +1,9 @@
 """What one trajectory pays per step: the equations of motion called inside a loop,
 and a trajectory split into its per-step and fixed costs.
 
-Issue 12's row "one two-cylinder trajectory, ours / diffrax on the hand-written
-right-hand side" times a whole `simulate` of 16 steps. This script takes it apart.
+The summary row "one two-cylinder trajectory, ours / diffrax on the hand-written
+right-hand side" (`targets.py`) times a whole `simulate` of 16 steps. This script
+takes it apart.
 
 1. **The equations of motion inside a loop.** A `lax.fori_loop` of `--calls` calls
    on a single state (as a Runge-Kutta stage calls them), nanoseconds per call, for
@@ -27,20 +28,22 @@ right-hand side" times a whole `simulate` of 16 steps. This script takes it apar
 
 Medians of `--repeats` rounds (each round calls every program once, in turn).
 
-    python benchmarks/eom_in_loop.py [--calls 2000] [--repeats 201]
-        [--out benchmarks/results] [--loop-kernels]
+    python benchmarks/dev/eom_in_loop.py [--calls 2000] [--repeats 201]
+        [--out benchmarks/dev/results] [--loop-kernels]
 
 Writes `eom_in_loop.json` and `eom_in_loop.png` (`--loop-kernels`, which measures with
 `cjax.use_loop_kernels()`: `eom_in_loop_loop_kernels.json`, `.png`).
 """
 
 import argparse
+import sys
 from pathlib import Path
 
 import jax
 
 
 jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/
 
 import dynamics  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

@@ -1,4 +1,4 @@
-"""What one KKT solve costs XLA to compile, part by part (issue 12, compile time).
+"""What one KKT solve costs XLA to compile, part by part.
 
 A `simulate` program holds one copy of the equations of motion per place that calls
 them (the stages, the initial step, the release event and its root find, the samples
@@ -18,13 +18,14 @@ diagonal `M`, the default `cjax.Automatic()`) and its parts, each alone:
 Medians of `--repeats` compilations (`jax.clear_caches()` before each; XLA's own
 flags as the user has them), and the optimized HLO's instruction count.
 
-    python benchmarks/solve_compile.py [--repeats 5]
+    python benchmarks/dev/solve_compile.py [--repeats 5]
 
-Writes `benchmarks/results/solve_compile.json`.
+Writes `benchmarks/dev/results/solve_compile.json`.
 """
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -32,6 +33,7 @@ import jax
 
 
 jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/
 
 import jax.numpy as jnp  # noqa: E402
 from _common import write_cases  # noqa: E402

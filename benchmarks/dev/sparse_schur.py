@@ -8,9 +8,9 @@ memory; fitted growth exponents. With `--eom`: the whole chain EOM
 rtol = atol = 1e-8, t in [0, 1]) at the given N (default 256), default solver choice
 against `SparseSchur(method="levels")`.
 
-    python benchmarks/sparse_schur.py [N ...]
-    python benchmarks/sparse_schur.py --eom [N]
-    python benchmarks/sparse_schur.py --band
+    python benchmarks/dev/sparse_schur.py [N ...]
+    python benchmarks/dev/sparse_schur.py --eom [N]
+    python benchmarks/dev/sparse_schur.py --band
 
 `--band`: `method="levels"` against `method="scan"` (vmap over 200 states, compile)
 on patterns of growing bandwidth: 2D trusses (particle j joined to j - 1 .. j - r)

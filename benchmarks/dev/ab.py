@@ -30,7 +30,9 @@ Cases (float64, after compilation):
   `acc chain N=4 vmap 1000`, `acc chain N=64 vmap 100`: its accelerations (each
   revision's default saddle-point solver).
 
-    python benchmarks/ab.py --a 84b1f3a --b HEAD [--reps 31] [--only REGEX]
+    python benchmarks/dev/ab.py --a REV --b HEAD [--reps 31] [--only REGEX]
+
+Writes `benchmarks/dev/results/ab.json` and `ab.png`.
 """
 
 import argparse
@@ -237,11 +239,12 @@ def chain_cases(cj) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--a", default="84b1f3a", help="the base revision")
+    parser.add_argument("--a", required=True, help="the base revision")
     parser.add_argument("--b", default="HEAD", help="the revision compared with it")
     parser.add_argument("--reps", type=int, default=31)
     parser.add_argument("--only", default=".", help="a regex on the case names")
-    parser.add_argument("--out", default=os.path.join("benchmarks", "results"))
+    here = os.path.dirname(os.path.abspath(__file__))
+    parser.add_argument("--out", default=os.path.join(here, "results"))
     opts = parser.parse_args()
     folder = tempfile.mkdtemp(prefix="cjax_ab_")
     export(opts.a, "cjax_a", folder)
