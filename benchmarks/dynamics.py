@@ -214,7 +214,7 @@ def accelerations_benchmark(
         )(q, qd),
         # Ablation: only the autodiff part (M, Q - c, A and the bias), no KKT solve.
         "ablation: autodiff M, Q-c, A, bias only": lambda q, qd, args: jax.vmap(
-            lambda q_, qd_: system._equations(q_, qd_, t, args)
+            lambda q_, qd_: system.saddle_point_system(q_, qd_, t, args)
         )(q, qd),
     }
     outputs, rows = time_jax_interleaved(

@@ -29,7 +29,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import constrained_jax as cjax  # noqa: E402
-from constrained_jax._solver.saddle_point import FullKKTLU  # noqa: E402
+from constrained_jax import FullKKTLU, SaddlePointSystem  # noqa: E402
 from constrained_jax._solver.sparse import SparseMatrix  # noqa: E402
 from constrained_jax._solver.sparse_schur import (  # noqa: E402
     _apply_blocks,
@@ -142,14 +142,18 @@ def alternating(cases, repeat=7):
     return {name: float(np.median(ts)) for name, ts in times.items()}
 
 
+def _solve(solver, m, a, f, b):
+    return solver.solve(SaddlePointSystem(m, a, f, b), 0.0)
+
+
 def main(sizes):
     rows = []
     for num_links in sizes:
         mass, jac, (ms, js, rhs, bias) = problem(num_links, BATCH)
         one = lambda t: jax.tree.map(lambda x: x[0], t)  # noqa: E731
-        dense = lambda m, a, f, b: FullKKTLU(unroll_max=0).solve(m, a, f, b)  # noqa: E731
-        levels = lambda m, a, f, b: SparseSchur(method="levels").solve(m, a, f, b)  # noqa: E731
-        scan = lambda m, a, f, b: SparseSchur(method="scan").solve(m, a, f, b)  # noqa: E731
+        dense = lambda m, a, f, b: _solve(FullKKTLU(unroll_max=0), m, a, f, b)  # noqa: E731
+        levels = lambda m, a, f, b: _solve(SparseSchur(method="levels"), m, a, f, b)  # noqa: E731
+        scan = lambda m, a, f, b: _solve(SparseSchur(method="scan"), m, a, f, b)  # noqa: E731
         variants = {
             "levels": (levels, ms, js),
             "scan": (scan, ms, js),
@@ -282,7 +286,7 @@ def band(batch=200):
         for method in ("levels", "scan"):
 
             def fn(m, a, f, b, method=method):
-                return SparseSchur(method=method).solve(m, a, f, b)
+                return _solve(SparseSchur(method=method), m, a, f, b)
 
             c, compile_s[method], _ = compile_(jax.vmap(fn), *args)
             assert not np.any(c(*args)[2])
