@@ -127,10 +127,11 @@ def full_precision(fn):
     errors about 1e-3): the library's products (quadrature and interpolation tables,
     Schur complements, Newton and Gauss-Newton steps) and the user's own inside a
     solve would then miss float32's tolerances, or fail to converge (the float32 sphere
-    geodesic stalled at 256 Newton steps on an H100, `benchmarks/gpu.md`). Each public
-    solve is therefore traced under `jax.default_matmul_precision("highest")`, for its
-    own products and the user's functions it calls. (XLA:CPU computes every float32
-    and float64 product in full precision anyway: on a CPU nothing changes.)"""
+    geodesic stalled at 256 Newton steps on an H100; `benchmarks/README.md`). Each
+    public solve is therefore traced under `jax.default_matmul_precision("highest")`,
+    for its own products and the user's functions it calls. (XLA:CPU computes every
+    float32 and float64 product in full precision anyway: on a CPU nothing
+    changes.)"""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):

@@ -108,8 +108,12 @@ class Reduction(eqx.Module):
         acceleration = jac @ qdd + bias
         acceleration_scale = jnp.abs(jac) @ jnp.abs(qdd) + jnp.abs(bias)
         balance = jac.T @ lam - residual
+        # (Each multiplier at the size of the largest: the round-off of the solve,
+        # which a row whose own terms vanish, a massless coordinate, would
+        # otherwise be held to.)
+        lam_size = jnp.full_like(lam, jnp.max(jnp.abs(lam), initial=0.0))
         balance_scale = (
-            jnp.abs(mass) @ jnp.abs(qdd) + jnp.abs(rhs) + jnp.abs(jac.T) @ jnp.abs(lam)
+            jnp.abs(mass) @ jnp.abs(qdd) + jnp.abs(rhs) + jnp.abs(jac.T) @ lam_size
         )
         off = off_constraints(self.full, q, qd, t, args, consistency_tol) | jnp.any(
             jnp.abs(acceleration) > consistency_tol * acceleration_scale

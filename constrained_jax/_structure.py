@@ -273,8 +273,7 @@ def _evaluate(system, dtype, args, n, k) -> Structure:
     inside the trace of the caller's program (its result is concrete), and, unlike
     evaluating under `jax.ensure_compile_time_eval`, it does not evaluate the
     constants of the trace (the basis of `jax.jacfwd`, say) as separate eager
-    operations, each compiled on its own: 27 of them took 0.9-1.4 s of the first
-    trace of the two cylinders and of the chain."""
+    operations, each compiled on its own."""
     rng = np.random.default_rng(20260512)
     leaves, treedef = jax.tree_util.tree_flatten(args)
     dtype = np.dtype(dtype)

@@ -160,8 +160,8 @@ def sweep(
         their own chunks are done.
     - If a process dies, its finished chunks are on disk and its unfinished ones are
         lost; JAX's runtime ends the other processes (after
-        `heartbeat_timeout_seconds` of `jax.distributed.initialize`, 100 s by
-        default), their own chunks done. Start the job again with the same folder:
+        `heartbeat_timeout_seconds` of `jax.distributed.initialize`), their own
+        chunks done. Start the job again with the same folder:
         chunks already there are read back, whoever wrote them, and only the missing
         ones are computed (with any number of processes).
     - Without a checkpoint folder, `sweep` raises a `ValueError` under several
@@ -450,8 +450,8 @@ def _python_state(fn) -> tuple[tuple, list]:
             a = np.asarray(obj)
             if not a.dtype.hasobject:
                 a = np.ascontiguousarray(a)
-                # CRC-32: a few times faster than a cryptographic hash (~1 ms per
-                # MB), and a change is all it has to see.
+                # CRC-32: cheaper than a cryptographic hash, and a change is all
+                # it has to see.
                 crc = zlib.crc32(memoryview(a.reshape(-1).view(np.uint8)))
                 tokens.append((a.shape, a.dtype.str, crc))
             return

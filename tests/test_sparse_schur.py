@@ -357,16 +357,12 @@ def test_matvec_matches_the_dense_product(shape, density, transpose):
     matrix = SparseMatrix.from_dense(jnp.asarray(dense), pattern)
     vector = jnp.asarray(rng.normal(size=shape[0] if transpose else shape[1]))
     expected = (dense.T if transpose else dense) @ np.asarray(vector)
-    out = sparse_module.matvec(matrix, vector, transpose=transpose)
+    out = matrix.matvec(vector, transpose=transpose)
     np.testing.assert_allclose(out, expected, rtol=1e-13, atol=1e-13)
-    batched = jax.vmap(lambda v: sparse_module.matvec(matrix, v, transpose=transpose))(
+    batched = jax.vmap(lambda v: matrix.matvec(v, transpose=transpose))(
         jnp.stack([vector, 2 * vector])
     )
     np.testing.assert_allclose(batched[1], 2 * expected, rtol=1e-13, atol=1e-13)
-    jaxpr = str(
-        jax.make_jaxpr(lambda m, v: sparse_module.matvec(m, v, transpose))(
-            matrix, vector
-        )
-    )
+    jaxpr = str(jax.make_jaxpr(lambda m, v: m.matvec(v, transpose))(matrix, vector))
     small = int(pattern.sum()) <= sparse_module._UNROLL
     assert ("gather" in jaxpr or "scatter" in jaxpr) is not small

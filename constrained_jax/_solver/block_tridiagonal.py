@@ -89,7 +89,7 @@ def block_tridiagonal_solve(factors, lower, rhs: Float[Array, "N s r"]):
 
 # Up to this many blocks the probe and index arrays are NumPy constants (gathers with
 # constant indices, as fast as before); above, they are built from iota in the
-# program, so that compile time does not grow with the mesh (13 s at 3e6 nodes).
+# program, so that compile time does not grow with the mesh.
 CONSTANT_INDICES_MAX = 10_000
 
 

@@ -2,8 +2,8 @@
 
 Systems of up to `unroll_max` unknowns are factored by Gaussian elimination with
 partial pivoting *unrolled at trace time*, which XLA fuses into straight-line code: on
-CPU a LAPACK call on a 3x3 matrix costs far more than its arithmetic: a vmapped batch
-of 10,000 cylinder extremizations runs 4-7x faster than with LAPACK's LU
+CPU a LAPACK call on a 3x3 matrix costs far more than its arithmetic, so a vmapped
+batch of small problems runs several times faster than with LAPACK's LU
 (`DenseLU(unroll_max=0)`; `benchmarks/extremize.py`). Larger systems use LAPACK's LU.
 Singular matrices are reported (`lineax.RESULTS.singular`), never returned as NaN;
 matrices with NaN or inf entries as `lineax.RESULTS.nonfinite_input`.
