@@ -1,11 +1,9 @@
-"""Contacts that come and go: the contact modes of a system with several
-[`constrained_jax.Unilateral`][] groups, and the impact law at re-contact.
+"""Contacts that come and go: the record of their events, and the impact law at
+re-contact.
 
-A mode says which groups are attached (their rows hold, their multipliers push) and
-which are free (their rows dropped, their gaps watched). With `G` groups there are
-`2^G` modes, numbered by bits: bit `i` set when group `i` (in the order of
-`system.constraints`) is attached. Each mode is its own `LagrangianSystem` (the
-bilateral constraints and the attached groups), built once at trace time.
+A contact mode says which [`constrained_jax.Unilateral`][] groups are attached (their
+rows hold, their multipliers push) and which are free (their rows inactive, their
+gaps watched); `constrained_jax._phases` runs the phases of a run, one mode each.
 
 **Impact.** When the gap of a free group falls through zero at `t` with velocities
 `qd-`, the velocities jump by an impulse, in the convention of the equations of
@@ -23,10 +21,8 @@ Glocker, *Multibody Dynamics with Unilateral Contacts*, Wiley 1996, ch. 5). With
 """
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._constraints import Unilateral
 from ._system import project
 
 
@@ -50,8 +46,8 @@ class Events(eqx.Module):
     - `impulse`: for an impact, the impulse `Lambda` of the group's first row (`0`
         for a release).
     - `q`, `qd`: the state just after the event.
-    - `mode`: the contact mode at the end of the run (bit `i` set when group `i` is
-        attached).
+    - `mode`: the contact mode at the end of the run (bit `i` set when group `i`, in
+        the order of the system's `Unilateral` groups, is attached).
     """
 
     count: Int[Array, ""]
@@ -66,95 +62,16 @@ class Events(eqx.Module):
     mode: Int[Array, ""]
 
 
-class _Modes(eqx.Module):
-    """The contact modes of `system` (see the module docstring), built at trace time.
-
-    `groups[i]` is the `i`-th `Unilateral` of the system, at `indices[i]` among its
-    constraints. For mode `m`: `systems[m]` (the system with the free groups
-    removed), `keep_rows[m]` (the rows of the full system that it keeps, in order),
-    `first_rows[m][i]` (the row, in `systems[m]`, of the first row of attached group
-    `i`; `None` when free) and `group_rows[m][i]` (the rows, in `systems[m]`, of
-    group `i`; empty when free)."""
-
-    groups: tuple
-    indices: tuple
-    systems: tuple
-    keep_rows: tuple
-    first_rows: tuple
-    group_rows: tuple
-
-    @property
-    def num_groups(self) -> int:
-        return len(self.groups)
-
-    @property
-    def num_modes(self) -> int:
-        return 2 ** len(self.groups)
-
-    def attached(self, mode: int) -> list[int]:
-        return [i for i in range(self.num_groups) if mode >> i & 1]
-
-    def free(self, mode: int) -> list[int]:
-        return [i for i in range(self.num_groups) if not mode >> i & 1]
-
-
-def find_unilaterals(system) -> list[tuple[int, Unilateral]]:
-    return [
-        (i, c) for i, c in enumerate(system.constraints) if isinstance(c, Unilateral)
-    ]
-
-
-def build_modes(system, n: int, args, dtype) -> _Modes:
-    """Every contact mode of `system` (static: Python structure only)."""
-    found = find_unilaterals(system)
-    indices = tuple(i for i, _ in found)
-    groups = tuple(c for _, c in found)
-    sizes = [c.num_constraints(n, args, dtype) for c in system.constraints]
-    starts = [sum(sizes[:j]) for j in range(len(sizes))]
-    systems, keep_rows, first_rows, group_rows = [], [], [], []
-    for mode in range(2 ** len(groups)):
-        dropped = [indices[i] for i in range(len(groups)) if not mode >> i & 1]
-        sub = system
-        for index in sorted(dropped, reverse=True):
-            sub = sub.without(index)
-        keep, first, rows = [], [], []
-        for j in range(len(sizes)):
-            if j not in dropped:
-                keep.extend(range(starts[j], starts[j] + sizes[j]))
-        for index in indices:
-            if index in dropped:
-                first.append(None)
-                rows.append(())
-            else:
-                at = keep.index(starts[index])
-                first.append(at)
-                rows.append(tuple(range(at, at + sizes[index])))
-        systems.append(sub)
-        keep_rows.append(tuple(keep))
-        first_rows.append(tuple(first))
-        group_rows.append(tuple(rows))
-    return _Modes(
-        groups,
-        indices,
-        tuple(systems),
-        tuple(keep_rows),
-        tuple(first_rows),
-        tuple(group_rows),
-    )
-
-
-def impact(system, rows, e, q, qd, t, args, iterations: int = 3):
+def impact(system, scale, q, qd, t, args, iterations: int = 3):
     """The state after an impact (see the module docstring): `(q, qd+, Lambda,
     singular)`.
 
-    `system` holds every row that holds through the impact; `rows` are the
-    impacting group's rows in it, whose velocity residual is reversed and scaled by
-    `e`. The positions are first put back on the holonomic rows (the event is found
-    a little past the contact: Gauss-Newton in the metric of `M`, `iterations`
-    steps), as `constrained_jax.consistent_initial_state` does: one projection,
-    `constrained_jax._system.project`.
+    `system` holds every row that holds through the impact (the impacting group's
+    and those of the contact mode); `scale` is `1 + E` per row (`E = e` on the
+    impacting group's rows, 0 on the others), by which the velocity residual is
+    reversed. The positions are first put back on the holonomic rows (the event is
+    found a little past the contact: Gauss-Newton in the metric of `M`,
+    `iterations` steps), as `constrained_jax.consistent_initial_state` does: one
+    projection, `constrained_jax._system.project`.
     """
-    n, dtype = q.shape[0], q.dtype
-    k = system.num_constraints(n, args, dtype)
-    scale = jnp.ones((k,), dtype).at[jnp.asarray(rows, int)].add(e)
     return project(system, q, qd, t, args, iterations, velocity_scale=scale)

@@ -22,7 +22,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from ._system import project
 from ._wrapped_solver import AbstractForwardingSolver, prepare_to_wrap
@@ -53,10 +53,18 @@ class AbstractStabilization(eqx.Module):
 
     @abc.abstractmethod
     def project_saved(
-        self, system, q: Float[Array, "T n"], qd: Float[Array, "T n"], ts, args
+        self,
+        system,
+        q: Float[Array, "T n"],
+        qd: Float[Array, "T n"],
+        ts,
+        args,
+        active: Bool[Array, "T k"] | None = None,
     ) -> tuple[Float[Array, "T n"], Float[Array, "T n"]]:
         """The states saved at the times `ts` (interpolated between steps), as the
-        trajectory reports them."""
+        trajectory reports them; `active`, if given, holds the rows of `system` that
+        held at each save time (a contact mode, see
+        `LagrangianSystem.with_active`)."""
 
 
 class Unstabilized(AbstractStabilization):
@@ -68,7 +76,7 @@ class Unstabilized(AbstractStabilization):
     def wrap_solver(self, solver, system, stepsize_controller, adjoint):
         return solver
 
-    def project_saved(self, system, q, qd, ts, args):
+    def project_saved(self, system, q, qd, ts, args, active=None):
         return q, qd
 
 
@@ -91,7 +99,7 @@ class Baumgarte(AbstractStabilization):
     def wrap_solver(self, solver, system, stepsize_controller, adjoint):
         return solver
 
-    def project_saved(self, system, q, qd, ts, args):
+    def project_saved(self, system, q, qd, ts, args, active=None):
         return q, qd
 
 
@@ -118,11 +126,14 @@ class Projection(AbstractStabilization):
         solver = prepare_to_wrap(solver, stepsize_controller, adjoint)
         return ProjectedSolver(solver, system, self.iterations)
 
-    def project_saved(self, system, q, qd, ts, args):
-        project = lambda q_, qd_, t_: project_state(
-            system, q_, qd_, t_, args, self.iterations
-        )
-        return jax.vmap(project)(q, qd, ts)
+    def project_saved(self, system, q, qd, ts, args, active=None):
+        def one(q_, qd_, t_, active_=None):
+            held = system if active_ is None else system.with_active(active_)
+            return project_state(held, q_, qd_, t_, args, self.iterations)
+
+        if active is None:
+            return jax.vmap(one)(q, qd, ts)
+        return jax.vmap(one)(q, qd, ts, active)
 
 
 def project_state(system, q, qd, t, args, iterations: int):

@@ -65,8 +65,14 @@ def off_constraints(system, q, qd, t, args, tol) -> Bool[Array, ""]:
     its start (`consistency_tol`), also used by `consistent_initial_state`,
     `linearize` and `Reduction.full_multipliers`. A NaN residual (a constraint
     Jacobian not defined there) counts as a violation."""
-    position = system.holonomic_residual(q, t, args)
+    if system.active is None:
+        position = system.holonomic_residual(q, t, args)
+    else:
+        # The rows that hold (position residuals of all rows, 0 for Pfaffian ones).
+        position = jnp.where(system.active, system.position_residual(q, t, args), 0)
     velocity = system.velocity_residual(q, qd, t, args)
+    if system.active is not None:
+        velocity = jnp.where(system.active, velocity, 0)
     on = jnp.all(jnp.abs(position) <= tol * (1 + jnp.max(jnp.abs(q)))) & jnp.all(
         jnp.abs(velocity) <= tol * (1 + jnp.max(jnp.abs(qd)))
     )
@@ -223,6 +229,7 @@ class LagrangianSystem(eqx.Module):
     constraints: tuple[AbstractConstraint, ...] = ()
     forces: Callable | None = None
     saddle_point_solver: AbstractSaddlePointSolver = Automatic()
+    active: Bool[Array, " k"] | None = None
 
     def __init__(
         self,
@@ -256,6 +263,16 @@ class LagrangianSystem(eqx.Module):
             )
         self.forces = forces
         self.saddle_point_solver = saddle_point_solver
+        self.active = None
+
+    def with_active(self, active: Bool[Array, " k"] | None) -> "LagrangianSystem":
+        """The same system with only the constraint rows where `active` (shape
+        `(k,)`, traced) holding: the others (a released contact) are solved as
+        trivial rows with zero multipliers, and their residuals are not held to
+        zero. `None`: every row holds. One compiled program serves every mask."""
+        return eqx.tree_at(
+            lambda s: s.active, self, active, is_leaf=lambda x: x is None
+        )
 
     # ------------------------------------------------------------------ structure
 
@@ -404,7 +421,8 @@ class LagrangianSystem(eqx.Module):
         )
         if bias_correction is not None:
             bias = bias + bias_correction
-        return SaddlePointSystem(mass, jac, rhs, bias, _either(mismatch_m, mismatch_a))
+        mismatch = _either(mismatch_m, mismatch_a)
+        return SaddlePointSystem(mass, jac, rhs, bias, mismatch, **_TMP(self.active))
 
     def _lagrangian_pass(self, q, qd, t, args, structure: Structure, unroll: bool):
         """`(M, Q - c, mismatch)`: `grad_q L` and `p = grad_qd L`, and the forward
@@ -606,7 +624,9 @@ def project(
         jac, _, mismatch_a = system._constraint_pass(
             q_, qd, t, args, structure, form.unroll
         )
-        kkt = SaddlePointSystem(mass, jac, zeros, -target, mismatch_a)
+        kkt = SaddlePointSystem(
+            mass, jac, zeros, -target, mismatch_a, **_TMP(system.active)
+        )
         x, lam, singular = solve_saddle_point(system.saddle_point_solver, kkt)
         flags.append(singular)
         return x, lam
@@ -620,3 +640,7 @@ def project(
     jump, impulse = solve(q, -residual)
     singular = functools.reduce(jnp.logical_or, flags)
     return q, qd + jump, impulse, singular
+
+
+def _TMP(active):
+    return {} if active is None else {'active': active}

@@ -1,0 +1,771 @@
+"""The phases of a run of [`constrained_jax.simulate`][]: one `diffrax.diffeqsolve`
+each, in a contact mode.
+
+Every run is a sequence of phases, and its kind is decided once, at trace time, by a
+`Plan`. A system without [`constrained_jax.Unilateral`][] constraints runs one phase.
+With them the run is a loop over phases (`lax.scan`), each in a contact mode: which
+groups are attached. A mode is data, a boolean per group, not a compiled branch: the
+system of every mode is the full system with the rows of the free groups inactive
+(`LagrangianSystem.with_active`: solved as trivial rows with zero multipliers), so
+one phase program serves every mode, whatever the number of groups.
+
+A phase ends at its first event: a release (the pushing multiplier of an attached
+group falls through zero: that group is freed) or a contact (the gap of a free group
+falls through zero). With `max_events` a contact is an impact
+(`constrained_jax._contact.impact`: the velocities jump, and the group is attached
+again when the impact is inelastic or slower than its rest speed); without it (one
+group, released once) the run stops at re-contact.
+"""
+
+import abc
+import functools
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._constraints import Unilateral
+from ._contact import Events, impact
+from ._diffrax_integrate import diffeqsolve
+from ._misc import all_finite, float_tolerance
+from ._results import RESULTS
+from ._stabilization import AbstractStabilization, Unstabilized
+from ._system import LagrangianSystem, off_constraints
+from ._variational_integrator import (
+    AbstractVariationalIntegrator,
+    integrate_variational,
+)
+from ._vector_field import (
+    diverged_condition,
+    field_and_multipliers,
+    solve_accelerations,
+    vector_field,
+)
+from ._watch import Illinois, WatchedSolver
+from ._wrapped_solver import prepare_to_wrap
+
+
+# A free group's gap must fall this far below where its phase starts (or below zero),
+# in units of `eps (1 + |q|)`, for a contact: round-off right after a release or an
+# impact is not a collision.
+_GAP_MARGIN = 1000.0
+
+
+class Plan(eqx.Module):
+    """How `simulate` runs a system (static, decided once at trace time).
+
+    `indices[i]` is the position of the `i`-th `Unilateral` group among the system's
+    constraints, `rows[i]` the range of its rows of `A`; `k` is the number of rows in
+    all. `max_events` is `None` for a run without impacts: one phase for a system
+    without groups, or a release run (one group, released once, stopped at
+    re-contact: two phases at most).
+    """
+
+    indices: tuple[int, ...] = eqx.field(static=True)
+    rows: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    k: int = eqx.field(static=True)
+    max_events: int | None = eqx.field(static=True)
+
+    @classmethod
+    def make(cls, system: LagrangianSystem, n: int, args, dtype, max_events):
+        sizes = [c.num_constraints(n, args, dtype) for c in system.constraints]
+        starts = np.cumsum([0] + sizes)
+        indices = tuple(
+            i for i, c in enumerate(system.constraints) if isinstance(c, Unilateral)
+        )
+        rows = tuple((int(starts[i]), int(starts[i + 1])) for i in indices)
+        return cls(indices, rows, int(starts[-1]), max_events)
+
+    @property
+    def contacts(self) -> bool:
+        """Whether the run watches contacts (a loop over phases)."""
+        return bool(self.indices)
+
+    @property
+    def impacts(self) -> bool:
+        """Whether a contact is an impact (else the end of the run)."""
+        return self.max_events is not None
+
+    @property
+    def num_phases(self) -> int:
+        if not self.contacts:
+            return 1
+        return 2 if self.max_events is None else self.max_events + 1
+
+    @property
+    def num_records(self) -> int:
+        """The events recorded: `max_events`, or the release and the re-contact."""
+        return 2 if self.max_events is None else self.max_events
+
+    def groups(self, system) -> list[Unilateral]:
+        return [system.constraints[i] for i in self.indices]
+
+    def membership(self) -> np.ndarray:
+        """`(g, k)`: the rows of each group."""
+        out = np.zeros((len(self.rows), self.k), bool)
+        for i, (start, stop) in enumerate(self.rows):
+            out[i, start:stop] = True
+        return out
+
+    def row_mask(self, active: Bool[Array, " g"]) -> Bool[Array, " k"]:
+        """The rows that hold when the groups `active` are attached: the bilateral
+        rows and the attached groups'."""
+        member = jnp.asarray(self.membership())
+        free_rows = jnp.any(member & jnp.invert(active)[:, None], axis=0)
+        return jnp.invert(free_rows)
+
+
+class Options(eqx.Module):
+    """`simulate`'s options, as the jitted core receives them (one module)."""
+
+    integrator: "AbstractIntegrator"
+    stabilization: AbstractStabilization
+    stepsize_controller: diffrax.AbstractStepSizeController
+    dt0: Float[Array, ""] | None
+    max_steps: int = eqx.field(static=True)
+    adjoint: diffrax.AbstractAdjoint
+    progress_meter: diffrax.AbstractProgressMeter
+
+    @property
+    def adaptive(self) -> bool:
+        return isinstance(
+            self.stepsize_controller, diffrax.AbstractAdaptiveStepSizeController
+        )
+
+
+class Run(eqx.Module):
+    """What the phases give `_simulate`: the states at the save times (`inf` where
+    not reached), which groups were attached at each save time (`active`, `None`
+    without contacts: every row holds), the last state reached and its groups, the
+    result and statistics, and the record of a contact run (`Events` with
+    `max_events`, else the release and re-contact of a release run, as
+    `(released, at_start, time, q, qd, recontact, recontact_time)`)."""
+
+    q: Float[Array, "T n"]
+    qd: Float[Array, "T n"]
+    active: Bool[Array, "T g"] | None
+    t_end: Float[Array, ""]
+    q_end: Float[Array, " n"]
+    qd_end: Float[Array, " n"]
+    active_end: Bool[Array, " g"] | None
+    result: RESULTS
+    stats: dict
+    events: Events | None = None
+    release: tuple | None = None
+
+
+class Phase(eqx.Module):
+    """One diffrax solve (`run_phase`): the states at the save times, the last state
+    reached, and diffrax's result, statistics and event mask."""
+
+    saved: tuple[Float[Array, "T n"], Float[Array, "T n"]] | None
+    t_end: Float[Array, ""]
+    q_end: Float[Array, " n"]
+    qd_end: Float[Array, " n"]
+    result: diffrax.RESULTS
+    stats: dict
+    event_mask: tuple
+
+
+def run_phase(
+    system, options: Options, solver, t0, t1, y0, ts, event, args, watch=None
+):
+    """One diffrax solve of `system` from `(t0, y0)` to `t1`, saving at `ts` (or not,
+    if `None`), stopped by `event` (a `diffrax.Event`).
+
+    `watch`, if given, is `(watch_fn, pick, start)`: the multiplier the phase samples
+    inside each step (`WatchedSolver`), as a function of the state and as a function
+    of all the multipliers, and its value at `(t0, y0)`."""
+    stabilization = options.stabilization
+    solver = stabilization.wrap_solver(
+        solver, system, options.stepsize_controller, options.adjoint
+    )
+    if watch is not None:
+        watch_fn, pick, start = watch
+        stages = jax.tree_util.Partial(
+            _stages, field_and_multipliers(system, stabilization), pick
+        )
+        solver = prepare_to_wrap(solver, options.stepsize_controller, options.adjoint)
+        solver = WatchedSolver(solver, watch_fn, start, options.adaptive, stages)
+    subs = [diffrax.SubSaveAt(t1=True)]
+    if ts is not None:
+        subs.append(diffrax.SubSaveAt(ts=ts))
+    sol = diffeqsolve(
+        diffrax.ODETerm(vector_field(system, stabilization)),
+        solver,
+        t0,
+        t1,
+        options.dt0,
+        y0,
+        args,
+        saveat=diffrax.SaveAt(subs=subs),
+        stepsize_controller=options.stepsize_controller,
+        max_steps=options.max_steps,
+        adjoint=options.adjoint,
+        event=event,
+        progress_meter=options.progress_meter,
+        throw=False,
+        # `simulate` made `ts` valid (`_time_grid_ok`, then clipped to each phase's
+        # span): no host callbacks, so the program can be cached.
+        save_times_checked=True,
+    )
+    (q_end, qd_end) = sol.ys[0]
+    return Phase(
+        saved=sol.ys[1] if ts is not None else None,
+        t_end=sol.ts[0][0],
+        q_end=q_end[0],
+        qd_end=qd_end[0],
+        result=sol.result,
+        stats=sol.stats,
+        event_mask=sol.event_mask,
+    )
+
+
+def _stages(field, pick, t, y_and_w, args):
+    derivative, lam = field(t, y_and_w[0], args)
+    return derivative, pick(lam)
+
+
+class AbstractIntegrator(eqx.Module):
+    """How `simulate` integrates one kind of `solver`: `check` (in `simulate`, at
+    trace time) refuses what it cannot do; `run` (in `_simulate`) integrates a run
+    without contacts; `solver`, where contacts are watched, is the diffrax solver of
+    the phases."""
+
+    @abc.abstractmethod
+    def check(self, system, stabilization, dt0, progress_meter) -> None:
+        """Raise a `ValueError` for the options this solver cannot honour."""
+
+    @abc.abstractmethod
+    def run(self, system, options, t0, t1, q0, qd0, args, ts, ends) -> Run:
+        """Integrate from `(q0, qd0)` at `t0` to `t1`, saving at `ts`; `ends` is
+        `(save t0, save t1)` when `ts` is only those ends (the states are then
+        saved from the start and the last state reached, without a save loop)."""
+
+
+class DiffraxIntegrator(AbstractIntegrator):
+    """A diffrax solver: one phase without contacts, the phases of `run_contacts`
+    with them."""
+
+    solver: diffrax.AbstractSolver
+
+    def check(self, system, stabilization, dt0, progress_meter):
+        pass  # Every stabilization, contacts and progress meters.
+
+    def run(self, system, options, t0, t1, q0, qd0, args, ts, ends):
+        event = diffrax.Event(diverged_condition(system, q0, t0, args))
+        if ends is None:
+            one = run_phase(
+                system, options, self.solver, t0, t1, (q0, qd0), ts, event, args
+            )
+            q, qd = one.saved
+        else:
+            # Only the ends are saved: from the last state reached, not by a save
+            # loop over `ts` (a smaller program). As diffrax saves `ts`, an end not
+            # reached is `inf`: `t1` if the run stopped early, `t0` too if it
+            # stopped before its first accepted step.
+            one = run_phase(
+                system, options, self.solver, t0, t1, (q0, qd0), None, event, args
+            )
+            reached = one.t_end == t1
+            started = reached | (one.stats["num_accepted_steps"] > 0)
+
+            def mask(saved, ok):
+                return jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf), saved)
+
+            saved = [mask((q0, qd0), started)] if ends[0] else []
+            if ends[1]:
+                saved.append(mask((one.q_end, one.qd_end), reached))
+            q, qd = (jnp.stack(xs) for xs in zip(*saved, strict=True))
+        result = RESULTS.where(
+            one.result == diffrax.RESULTS.event_occurred,
+            RESULTS.diverged,
+            RESULTS.promote(one.result),
+        )
+        return Run(
+            q, qd, None, one.t_end, one.q_end, one.qd_end, None, result, one.stats
+        )
+
+
+class VariationalIntegrator(AbstractIntegrator):
+    """A [`constrained_jax.AbstractVariationalIntegrator`][]: fixed steps that land on
+    the save times, its own loop (not diffrax's), the constraints kept at every
+    step."""
+
+    integrator: AbstractVariationalIntegrator
+
+    def check(self, system, stabilization, dt0, progress_meter):
+        if dt0 is None:
+            raise ValueError(
+                "A variational integrator takes fixed steps: pass the step size, e.g. "
+                "`simulate(..., solver=cjax.VariationalIntegrator(), dt0=0.01)`."
+            )
+        if not isinstance(stabilization, Unstabilized):
+            raise ValueError(
+                "A variational integrator enforces the constraints itself at every "
+                "step: use `stabilization=cjax.Unstabilized()` (the default)."
+            )
+        if any(isinstance(c, Unilateral) for c in system.constraints):
+            raise ValueError(
+                "Release events (`cjax.Unilateral`) are not implemented for the "
+                "variational integrator; use a diffrax solver."
+            )
+        if not isinstance(progress_meter, diffrax.NoProgressMeter):
+            raise ValueError(
+                "`progress_meter` is not supported by the variational integrator (it "
+                "runs its own loop, not diffrax's): leave it to its default "
+                "`diffrax.NoProgressMeter()`, use a diffrax solver for a progress bar "
+                "of one run, or `cjax.sweep` for a bar over many runs."
+            )
+
+    def run(self, system, options, t0, t1, q0, qd0, args, ts, ends):
+        del ends  # Saved at `ts` by its own loop.
+        variational = integrate_variational(
+            self.integrator,
+            system,
+            t0,
+            t1,
+            options.dt0,
+            q0,
+            qd0,
+            args,
+            ts_save=ts,
+            max_steps=options.max_steps,
+            # `simulate` has tested the start with its own `consistency_tol`: the
+            # variational integrator does not test it again.
+            consistency_tol=float("inf"),
+            throw=False,
+        )
+        q, qd = variational.q, variational.qd
+        return Run(
+            q,
+            qd,
+            None,
+            ts[-1],
+            q[-1],
+            qd[-1],
+            None,
+            variational.result,
+            variational.stats,
+        )
+
+
+@functools.singledispatch
+def integrator(solver) -> AbstractIntegrator:
+    """The integrator of a `solver`: dispatched on its type (the solver families are
+    not ours to give a method), a `ValueError` for anything else."""
+    raise ValueError(
+        "`solver` must be a diffrax solver (e.g. `diffrax.Tsit5()`) or "
+        f"`cjax.VariationalIntegrator()`, got {type(solver).__name__}."
+    )
+
+
+@integrator.register
+def _(solver: diffrax.AbstractSolver):
+    return DiffraxIntegrator(solver)
+
+
+@integrator.register
+def _(solver: AbstractVariationalIntegrator):
+    return VariationalIntegrator(solver)
+
+
+def initial_contacts(plan: Plan, system, q0, qd0, t0, args, tol):
+    """The groups attached at the start, and whether the start is consistent with
+    them. With impacts (`max_events`): a group is attached when its gap and the
+    velocity residual of its rows are zero (to `tol`, relative to `1 + |q|` and
+    `1 + |qd|`), free otherwise; no gap may be negative (penetration) beyond `tol`.
+    A release run starts attached. The rows of the bilateral constraints and of the
+    attached groups must hold (positions and velocities, to `tol`)."""
+    groups = plan.groups(system)
+    if not plan.impacts:
+        active = jnp.ones((len(groups),), bool)
+        return active, jnp.invert(off_constraints(system, q0, qd0, t0, args, tol))
+    scale_q = tol * (1 + jnp.max(jnp.abs(q0)))
+    scale_qd = tol * (1 + jnp.max(jnp.abs(qd0)))
+    attached, ok = [], jnp.array(True)
+    for group in groups:
+        gap = group.gap(q0, t0, args)
+        velocity = group.velocity_residual(q0, qd0, t0, args)
+        attached.append(
+            (jnp.abs(gap) <= scale_q) & jnp.all(jnp.abs(velocity) <= scale_qd)
+        )
+        ok = ok & (gap >= -scale_q)
+    active = jnp.stack(attached)
+    held = system.with_active(plan.row_mask(active))
+    off = off_constraints(held, q0, qd0, t0, args, tol)
+    return active, ok & jnp.invert(off)
+
+
+class _Contacts(eqx.Module):
+    """The contact data of a run with groups (traced values and static layout):
+    what the events, the watch and the impacts read."""
+
+    groups: tuple = eqx.field(static=True)
+    firsts: tuple[int, ...] = eqx.field(static=True)
+    signs: tuple[float, ...] = eqx.field(static=True)
+
+    def pushing(self, lam, active):
+        """`sign * lambda` of each group's first row, `+inf` for a free group."""
+        values = jnp.asarray(self.signs, lam.dtype) * lam[np.asarray(self.firsts)]
+        return jnp.where(active, values, jnp.inf)
+
+    def gaps(self, q, t, args):
+        """Each group's gap (`+inf` for a group without one: never re-contacts)."""
+        inf = jnp.asarray(jnp.inf, q.dtype)
+        return jnp.stack(
+            [
+                inf
+                if g.gap is None
+                else jnp.reshape(g.gap(q, t, args), ()).astype(q.dtype)
+                for g in self.groups
+            ]
+        )
+
+
+def _multipliers(system, t, y, args):
+    """The multipliers of `system` at `(t, y)` (all zeros if no group is attached:
+    no solve is needed then)."""
+    q, qd = y
+    k = system.active.shape[0]
+
+    def solve():
+        return solve_accelerations(system, q, qd, t, args)[1]
+
+    return jax.lax.cond(jnp.any(system.active), solve, lambda: jnp.zeros((k,), q.dtype))
+
+
+def _watched(contacts, active, lam):
+    """The smallest pushing multiplier of the attached groups (`1` when none is
+    attached: nothing to watch, and the watch then sees a constant)."""
+    return jnp.where(jnp.any(active), jnp.min(contacts.pushing(lam, active)), 1.0)
+
+
+def _watch_fn(contacts, active, system, t, y, args, **kwargs):
+    del kwargs
+    return _watched(contacts, active, _multipliers(system, t, y, args))
+
+
+def _event_values(contacts, active, system, offsets, t, y, args):
+    """Per group: the pushing multiplier of an attached one, the gap (less its
+    offset) of a free one: all start `>= 0`, and the first to fall through zero is
+    the next event."""
+    lam = _multipliers(system, t, y, args)
+    return jnp.where(
+        active, contacts.pushing(lam, active), contacts.gaps(y[0], t, args) - offsets
+    )
+
+
+def _next_event(contacts, active, system, offsets, t, y, args, **kwargs):
+    # One condition, the smallest value: diffrax keeps only the first condition (in
+    # order) of those that change sign in a step, which need not be the first in
+    # time.
+    del kwargs
+    return jnp.min(_event_values(contacts, active, system, offsets, t, y, args))
+
+
+def run_contacts(plan, options, solver, system, t0, t1, q0, qd0, args, ts, active0):
+    """The phases of a run with `Unilateral` groups (see the module docstring):
+    `lax.scan` over `plan.num_phases` phases (reverse-mode autodiff goes through it,
+    unlike a `while_loop`), each skipped once the run is over."""
+    run = _ContactRun(plan, options, solver, system, args, ts, t1)
+    carry = run.initial(t0, q0, qd0, active0)
+
+    def body(c, _):
+        return jax.lax.cond(c["done"], lambda c_: c_, run.phase, c), None
+
+    c, _ = jax.lax.scan(body, carry, None, length=plan.num_phases)
+    return run.finish(c, t0)
+
+
+class _ContactRun:
+    """The pieces of `run_contacts` (trace-time Python, not a pytree): the phase
+    body, and the record of the events."""
+
+    def __init__(self, plan, options, solver, system, args, ts, t1):
+        self.plan, self.options, self.solver = plan, options, solver
+        self.system, self.args, self.ts, self.t1 = system, args, ts, t1
+        groups = plan.groups(system)
+        self.num_groups = len(groups)
+        self.firsts = np.asarray([start for start, _ in plan.rows], int)
+        self.contacts = _Contacts(
+            tuple(groups),
+            tuple(int(r) for r in self.firsts),
+            tuple(g.sign for g in groups),
+        )
+        dtype = t1.dtype
+        self.dtype = dtype
+        self.eps = jnp.finfo(dtype).eps
+        self.tiny = 64 * self.eps * (1 + jnp.abs(t1))
+        # Root-finding tolerance: 1e-12, raised to 100 eps in float32 (unreachable).
+        root_tol = float_tolerance(1e-12, 100.0, dtype)
+        self.root_finder = Illinois(rtol=root_tol, atol=root_tol)
+        self.membership = jnp.asarray(plan.membership(), dtype)
+        if plan.impacts:
+            e = jnp.stack(
+                [jnp.asarray(g.restitution_value(args), dtype) for g in groups]
+            )
+            v = jnp.stack(
+                [jnp.asarray(g.rest_speed_value(args), dtype) for g in groups]
+            )
+            self.valid = jnp.all((e >= 0) & (e <= 1) & (v >= 0))
+            # Invalid values run as inelastic impacts (the status says why).
+            self.restitution = jnp.where(self.valid, e, 0.0)
+            self.rest_speed = jnp.where(self.valid, v, 0.0)
+
+    def held(self, active):
+        """The system of the contact mode `active`."""
+        return self.system.with_active(self.plan.row_mask(active))
+
+    def initial(self, t0, q0, qd0, active0) -> dict:
+        n, size, num_ts = q0.shape[0], self.plan.num_records, self.ts.shape[0]
+        inf = jnp.asarray(jnp.inf, self.dtype)
+        stats = ("num_steps", "num_accepted_steps", "num_rejected_steps")
+        return {
+            "t": t0,
+            "q": q0,
+            "qd": qd0,
+            "active": active0,
+            "count": jnp.array(0),
+            # A start with NaN or inf (refused by `_simulate` as `invalid_input`)
+            # runs no phase: its steps would be rejected until `max_steps` (under
+            # `jax.vmap` the whole batch waiting for it).
+            "done": jnp.invert(all_finite((q0, qd0, self.args))),
+            "result": RESULTS.successful,
+            "at_start": jnp.array(False),
+            "q_saved": jnp.full((num_ts, n), inf),
+            "qd_saved": jnp.full((num_ts, n), inf),
+            "active_saved": jnp.zeros((num_ts, self.num_groups), bool),
+            "stats": {k: jnp.array(0) for k in stats},
+            "time": jnp.full((size,), inf),
+            "group": jnp.full((size,), -1),
+            "impact": jnp.zeros((size,), bool),
+            "attached": jnp.zeros((size,), bool),
+            "speed": jnp.zeros((size,), self.dtype),
+            "impulse": jnp.zeros((size,), self.dtype),
+            "q_event": jnp.full((size, n), inf),
+            "qd_event": jnp.full((size, n), inf),
+        }
+
+    def phase(self, c) -> dict:
+        """One phase, in the mode `c["active"]`, and its event."""
+        active = c["active"]
+        held = self.held(active)
+        t_start = jnp.minimum(c["t"], self.t1 - self.tiny)
+        lam_start = _multipliers(held, t_start, (c["q"], c["qd"]), self.args)
+        start = _watched(self.contacts, active, lam_start)
+        # A multiplier that already pulls is released at once, without integrating.
+        pulls = jnp.any(active) & (start < 0)
+
+        def released_at_start(_):
+            saved = (c["q_saved"], c["qd_saved"], c["active_saved"])
+            pushing = self.contacts.pushing(lam_start, active)
+            which = jnp.asarray(jnp.argmin(pushing), int)
+            end = (t_start, c["q"], c["qd"], jnp.array(True), which)
+            return end, RESULTS.successful, saved, c["stats"]
+
+        integrate = functools.partial(self.integrate, c, held, t_start, start)
+        end, result, saved, stats = jax.lax.cond(
+            pulls, released_at_start, integrate, None
+        )
+        new = self.record(c, end, result, pulls)
+        new.update(
+            q_saved=saved[0], qd_saved=saved[1], active_saved=saved[2], stats=stats
+        )
+        return new
+
+    def integrate(self, c, held, t_start, start, _):
+        """One diffrax solve from the phase's start to its event (or `t1`)."""
+        active, args, ts = c["active"], self.args, self.ts
+        q, qd = c["q"], c["qd"]
+        contacts = self.contacts
+        watch = (
+            jax.tree_util.Partial(_watch_fn, contacts, active, held),
+            jax.tree_util.Partial(_watched, contacts, active),
+            start,
+        )
+        delta = _GAP_MARGIN * self.eps * (1 + jnp.max(jnp.abs(q)))
+        offsets = jnp.where(
+            active, 0.0, jnp.minimum(contacts.gaps(q, t_start, args), 0) - delta
+        )
+        # (The offsets and the mode are leaves of the event, not closed over: see
+        # `_adjoint.py`.)
+        event = diffrax.Event(
+            (
+                jax.tree_util.Partial(_next_event, contacts, active, held, offsets),
+                diverged_condition(held, q, t_start, args),
+            ),
+            root_finder=self.root_finder,
+        )
+        clipped = jnp.clip(ts, t_start, self.t1)
+        one = run_phase(
+            held, self.options, self.solver, t_start, self.t1, (q, qd), clipped,
+            event, args, watch,
+        )  # fmt: skip
+        stopped = one.result == diffrax.RESULTS.event_occurred
+        diverged = stopped & one.event_mask[1]
+        # (A fixed-step controller never reports `dt_min_reached`: it is
+        # `WatchedSolver` signalling a sign change it could not locate.)
+        missed = (
+            jnp.array(False)
+            if self.options.adaptive
+            else jnp.any(active) & (one.result == diffrax.RESULTS.dt_min_reached)
+        )
+        result = RESULTS.where(
+            stopped,
+            RESULTS.where(diverged, RESULTS.diverged, RESULTS.successful),
+            RESULTS.where(missed, RESULTS.release_missed, RESULTS.promote(one.result)),
+        )
+        y_end = (one.q_end, one.qd_end)
+        values = _event_values(contacts, active, held, offsets, one.t_end, y_end, args)
+        which = jnp.asarray(jnp.argmin(values), int)
+        happened = stopped & jnp.invert(diverged)
+        in_phase = (ts >= c["t"]) & (ts <= one.t_end)
+        saved = (
+            jnp.where(in_phase[:, None], one.saved[0], c["q_saved"]),
+            jnp.where(in_phase[:, None], one.saved[1], c["qd_saved"]),
+            jnp.where(in_phase[:, None], active, c["active_saved"]),
+        )
+        stats = {
+            k: v + jnp.asarray(one.stats[k], v.dtype) for k, v in c["stats"].items()
+        }
+        return (one.t_end, *y_end, happened, which), result, saved, stats
+
+    def impact(self, active, which, t, q, qd, is_contact):
+        """`(q+, qd+, attached, speed, impulse)` after a contact of group `which`:
+        an impact with the group's restitution (inelastic below its rest speed)."""
+        args, dtype = self.args, self.dtype
+        group_gap = jax.tree_util.Partial(_group_gap, self.contacts, which)
+        gap_rate = jax.jvp(
+            lambda q_, t_: group_gap(q_, t_, args), (q, t), (qd, jnp.ones_like(t))
+        )[1]
+        speed = jnp.where(is_contact, -gap_rate, 0.0)
+        e = jnp.where(speed < self.rest_speed[which], 0.0, self.restitution[which])
+
+        def hit(_):
+            held = self.held(active.at[which].set(True))
+            scale = 1 + e * self.membership[which]
+            q2, qd2, lam, singular = impact(held, scale, q, qd, t, args)
+            q2 = jnp.where(singular, jnp.nan, q2)
+            return q2, qd2, lam[self.firsts][which]
+
+        def no_hit(_):
+            return q, qd, jnp.zeros((), dtype)
+
+        q2, qd2, impulse = jax.lax.cond(is_contact, hit, no_hit, None)
+        return q2, qd2, is_contact & (e == 0), speed, impulse
+
+    def record(self, c, end, result, pulls) -> dict:
+        """The state after the phase's event, and the event in the record."""
+        t_end, q_end, qd_end, happened, which = end
+        active = c["active"]
+        is_release = happened & active[which]
+        is_contact = happened & jnp.invert(active[which])
+        active2 = jnp.where(is_release, active.at[which].set(False), active)
+        q2, qd2 = q_end, qd_end
+        attach = jnp.array(False)
+        speed = impulse = jnp.zeros((), self.dtype)
+        if self.plan.impacts:
+            q2, qd2, attach, speed, impulse = self.impact(
+                active, which, t_end, q_end, qd_end, is_contact
+            )
+            active2 = jnp.where(attach, active.at[which].set(True), active2)
+        size = self.plan.num_records
+        over_budget = happened & (c["count"] >= size)
+        record = happened & jnp.invert(over_budget)
+        singular = jnp.invert(all_finite((q2, qd2)))
+        result = RESULTS.where(
+            over_budget,
+            RESULTS.max_events_reached,
+            RESULTS.where(record & singular, RESULTS.singular_dynamics, result),
+        )
+        at = jnp.minimum(c["count"], size - 1)
+
+        def put(array, value):
+            return jnp.where(record, array.at[at].set(value), array)
+
+        stop = jnp.invert(record) | (result != RESULTS.successful)
+        if not self.plan.impacts:
+            # Without impacts, a contact ends the run (a release run's re-contact).
+            stop = stop | is_contact
+        return dict(
+            c,
+            t=t_end,
+            q=jnp.where(record, q2, q_end),
+            qd=jnp.where(record, qd2, qd_end),
+            active=jnp.where(record, active2, active),
+            count=c["count"] + record.astype(c["count"].dtype),
+            done=stop,
+            result=result,
+            at_start=c["at_start"] | (pulls & (c["count"] == 0)),
+            time=put(c["time"], t_end),
+            group=put(c["group"], which),
+            impact=put(c["impact"], is_contact),
+            attached=put(c["attached"], attach),
+            speed=put(c["speed"], speed),
+            impulse=put(c["impulse"], impulse),
+            q_event=put(c["q_event"], q2),
+            qd_event=put(c["qd_event"], qd2),
+        )
+
+    def finish(self, c, t0) -> Run:
+        result = c["result"]
+        events = release = None
+        if self.plan.impacts:
+            result = RESULTS.where(self.valid, result, RESULTS.invalid_restitution)
+            # (`done` is false only if every phase recorded an event: the budget is
+            # spent and the run has not reached `t1`.)
+            result = RESULTS.where(
+                c["done"] | (result != RESULTS.successful),
+                result,
+                RESULTS.max_events_reached,
+            )
+            bits = 2 ** jnp.arange(self.num_groups)
+            events = Events(
+                count=c["count"],
+                time=c["time"],
+                group=c["group"],
+                impact=c["impact"],
+                attached=c["attached"],
+                speed=c["speed"],
+                impulse=c["impulse"],
+                q=c["q_event"],
+                qd=c["qd_event"],
+                mode=jnp.sum(jnp.where(c["active"], bits, 0)),
+            )
+        else:
+            release = _release_record(c, self.t1)
+        return Run(
+            q=c["q_saved"],
+            qd=c["qd_saved"],
+            active=c["active_saved"],
+            t_end=c["t"],
+            q_end=c["q"],
+            qd_end=c["qd"],
+            active_end=c["active"],
+            result=result,
+            stats=c["stats"],
+            events=events,
+            release=release,
+        )
+
+
+def _group_gap(contacts, which, q, t, args):
+    return contacts.gaps(q, t, args)[which]
+
+
+def _release_record(c, t1):
+    """The release run's record: `(released, at_start, time, q, qd, recontact,
+    recontact_time)`, from its first event (the release, if any) and its second (the
+    re-contact, if any)."""
+    released = (c["count"] >= 1) & jnp.invert(c["impact"][0])
+    at_start = released & c["at_start"]
+    time = jnp.where(released, c["time"][0], t1)
+    q = jnp.where(released, c["q_event"][0], c["q"])
+    qd = jnp.where(released, c["qd_event"][0], c["qd"])
+    recontact = released & (c["count"] >= 2)
+    recontact_time = jnp.where(recontact, c["time"][1], t1)
+    return (released, at_start, time, q, qd, recontact, recontact_time)
