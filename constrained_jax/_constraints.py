@@ -264,11 +264,12 @@ class Unilateral(AbstractConstraint):
         `e < 1` bounces infinitely often in finite time (Zeno); a positive
         `rest_speed` ends the series physically (the ball then rests on the floor)
         after about `log(rest_speed / v_1) / log(e)` bounces; without it the run
-        stops with `RESULTS.max_events_reached`. (An impact is located where the gap
-        is `delta = 1000 eps (1 + |q|)` below zero, so impact speeds do not fall
-        below about `sqrt(2 g delta)`, `g` the acceleration towards the contact:
-        3e-6 m/s for a ball under 9.81 m/s^2 in float64, 0.07 m/s in float32. A
-        `rest_speed` below that is never reached.)
+        stops with `RESULTS.max_events_reached`. (A re-contact is detected where the
+        gap has fallen `delta = sqrt(eps) (1 + |q|)` below zero, and the impact acts
+        where the gap closes, found back along the motion. Impact speeds below about
+        `sqrt(2 g delta) / 64`, `g` the acceleration towards the contact, are not
+        resolved: 1e-5 m/s for a ball under 9.81 m/s^2 in float64, 2e-3 m/s in
+        float32. A `rest_speed` below that is never reached.)
     """
 
     constraints: tuple[AbstractConstraint, ...]

@@ -21,6 +21,8 @@ Glocker, *Multibody Dynamics with Unilateral Contacts*, Wiley 1996, ch. 5). With
 """
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._system import project
@@ -60,6 +62,47 @@ class Events(eqx.Module):
     q: Float[Array, "E n"]
     qd: Float[Array, "E n"]
     mode: Int[Array, ""]
+
+
+def back_to_contact(gap, q, qd, qdd, t, t_min, args, iterations: int = 6):
+    """The state where the gap closes, `(q, qd, t, speed)`, from the state `(q, qd)`
+    at `t` where the re-contact event was located, and the approach speed
+    `-d gap/dt` there (positive for an impact).
+
+    The event is the gap falling through `-delta` (see `constrained_jax._phases`), a
+    little past the contact. Acting there, the impact would keep the speed gained over
+    `delta` (the positions are put back on the contact, the velocities are not): an
+    energy `|g| delta` per impact, `g` the acceleration towards the contact, a relative
+    speed error `|g| delta / v^2` that adds up over a series of bounces, and each impact
+    `delta / v` late.
+
+    So the contact is found back along the motion: Newton's method in `s` on
+    `gap(q(t - s), t - s) = 0` with the Taylor model `q(t - s) = q - s qd + s^2 qdd
+    / 2`, `qd(t - s) = qd - s qdd` (exact for constant accelerations; `qdd` the
+    mode's accelerations at the event), `s` kept in `[0, t - t_min]`. From `s = 0`
+    the iterates increase to the root (the gap is concave in `s` when the
+    acceleration is towards the contact): quadratically while the contact speed is
+    not far below `sqrt(2 |g| delta)`, halving the error at each step below it, so
+    speeds down to about `sqrt(2 |g| delta) / 2^iterations` are resolved.
+    """
+    dtype = q.dtype
+    t = jnp.asarray(t, dtype)
+
+    def state(s):
+        return q - s * qd + 0.5 * s**2 * qdd, qd - s * qdd, t - s
+
+    def gap_and_rate(s):
+        q_, qd_, t_ = state(s)
+        return jax.jvp(lambda a, b: gap(a, b, args), (q_, t_), (qd_, jnp.ones_like(t_)))
+
+    s = jnp.zeros((), dtype)
+    for _ in range(iterations):
+        value, rate = gap_and_rate(s)
+        # d gap(t - s) / ds = -rate.
+        step = jnp.where(rate == 0, 0.0, value / jnp.where(rate == 0, 1.0, rate))
+        s = jnp.clip(s + step, 0.0, jnp.maximum(t - t_min, 0.0))
+    q_c, qd_c, t_c = state(s)
+    return q_c, qd_c, t_c, -gap_and_rate(s)[1]
 
 
 def impact(system, scale, q, qd, t, args, iterations: int = 3):

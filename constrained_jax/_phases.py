@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import Unilateral
-from ._contact import Events, impact
+from ._contact import back_to_contact, Events, impact
 from ._diffrax_integrate import diffeqsolve
 from ._misc import all_finite, float_tolerance
 from ._results import RESULTS
@@ -48,10 +48,14 @@ from ._watch import Illinois, WatchedSolver
 from ._wrapped_solver import prepare_to_wrap
 
 
-# A free group's gap must fall this far below where its phase starts (or below zero),
-# in units of `eps (1 + |q|)`, for a contact: round-off right after a release or an
-# impact is not a collision.
-_GAP_MARGIN = 1000.0
+
+def _gap_margin(q):
+    """How far a free group's gap must fall below where its phase starts (or below
+    zero) for a contact: `sqrt(eps) (1 + |q|)`, so that round-off and the integration
+    error of a gap that grows from zero right after a release or an impact are not a
+    collision. An impact then acts where the gap closes (`back_to_contact`), so the
+    margin only bounds the slowest impact resolved."""
+    return jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.max(jnp.abs(q)))
 
 
 class Plan(eqx.Module):
@@ -587,7 +591,7 @@ class _ContactRun:
             jax.tree_util.Partial(_watched, contacts, active),
             start,
         )
-        delta = _GAP_MARGIN * self.eps * (1 + jnp.max(jnp.abs(q)))
+        delta = _gap_margin(q)
         offsets = jnp.where(
             active, 0.0, jnp.minimum(contacts.gaps(q, t_start, args), 0) - delta
         )
@@ -634,29 +638,31 @@ class _ContactRun:
         }
         return (one.t_end, *y_end, happened, which), result, saved, stats
 
-    def impact(self, active, which, t, q, qd, is_contact):
-        """`(q+, qd+, attached, speed, impulse)` after a contact of group `which`:
-        an impact with the group's restitution (inelastic below its rest speed)."""
+    def impact(self, active, which, t_start, t, q, qd, is_contact):
+        """`(t_c, q+, qd+, attached, speed, impulse)` after a contact of group
+        `which`, located at `t`: back to where its gap closes (`t_c`,
+        `back_to_contact`), an impact there with the group's restitution (inelastic
+        below its rest speed, decided by the approach speed there)."""
         args, dtype = self.args, self.dtype
         group_gap = jax.tree_util.Partial(_group_gap, self.contacts, which)
-        gap_rate = jax.jvp(
-            lambda q_, t_: group_gap(q_, t_, args), (q, t), (qd, jnp.ones_like(t))
-        )[1]
-        speed = jnp.where(is_contact, -gap_rate, 0.0)
-        e = jnp.where(speed < self.rest_speed[which], 0.0, self.restitution[which])
 
         def hit(_):
+            qdd, _, _ = solve_accelerations(self.held(active), q, qd, t, args)
+            q_c, qd_c, t_c, speed = back_to_contact(
+                group_gap, q, qd, qdd, t, t_start, args
+            )
+            e = jnp.where(speed < self.rest_speed[which], 0.0, self.restitution[which])
             held = self.held(active.at[which].set(True))
             scale = 1 + e * self.membership[which]
-            q2, qd2, lam, singular = impact(held, scale, q, qd, t, args)
+            q2, qd2, lam, singular = impact(held, scale, q_c, qd_c, t_c, args)
             q2 = jnp.where(singular, jnp.nan, q2)
-            return q2, qd2, lam[self.firsts][which]
+            return t_c, q2, qd2, e == 0, speed, lam[self.firsts][which]
 
         def no_hit(_):
-            return q, qd, jnp.zeros((), dtype)
+            zero = jnp.zeros((), dtype)
+            return t, q, qd, jnp.array(False), zero, zero
 
-        q2, qd2, impulse = jax.lax.cond(is_contact, hit, no_hit, None)
-        return q2, qd2, is_contact & (e == 0), speed, impulse
+        return jax.lax.cond(is_contact, hit, no_hit, None)
 
     def record(self, c, end, result, pulls) -> dict:
         """The state after the phase's event, and the event in the record."""
@@ -665,23 +671,30 @@ class _ContactRun:
         is_release = happened & active[which]
         is_contact = happened & jnp.invert(active[which])
         active2 = jnp.where(is_release, active.at[which].set(False), active)
-        q2, qd2 = q_end, qd_end
-        attach = jnp.array(False)
+        t2, q2, qd2 = t_end, q_end, qd_end
+        attach = not_approaching = jnp.array(False)
         speed = impulse = jnp.zeros((), self.dtype)
         if self.plan.impacts:
-            q2, qd2, attach, speed, impulse = self.impact(
-                active, which, t_end, q_end, qd_end, is_contact
+            t_start = jnp.minimum(c["t"], self.t1 - self.tiny)
+            t2, q2, qd2, attach, speed, impulse = self.impact(
+                active, which, t_start, t_end, q_end, qd_end, is_contact
             )
+            attach = is_contact & attach
             active2 = jnp.where(attach, active.at[which].set(True), active2)
+            # An impact has a positive approach speed: a gap that falls through
+            # zero without closing (a step in the gap, or an event located where
+            # the gap does not cross) is refused, never taken as an impact (nor as
+            # a rest).
+            not_approaching = is_contact & jnp.invert(speed > 0)
         size = self.plan.num_records
         over_budget = happened & (c["count"] >= size)
         record = happened & jnp.invert(over_budget)
         singular = jnp.invert(all_finite((q2, qd2)))
         result = RESULTS.where(
-            over_budget,
-            RESULTS.max_events_reached,
-            RESULTS.where(record & singular, RESULTS.singular_dynamics, result),
+            record & not_approaching, RESULTS.impact_not_approaching, result
         )
+        result = RESULTS.where(record & singular, RESULTS.singular_dynamics, result)
+        result = RESULTS.where(over_budget, RESULTS.max_events_reached, result)
         at = jnp.minimum(c["count"], size - 1)
 
         def put(array, value):
@@ -693,7 +706,7 @@ class _ContactRun:
             stop = stop | is_contact
         return dict(
             c,
-            t=t_end,
+            t=jnp.where(record, t2, t_end),
             q=jnp.where(record, q2, q_end),
             qd=jnp.where(record, qd2, qd_end),
             active=jnp.where(record, active2, active),
@@ -701,7 +714,7 @@ class _ContactRun:
             done=stop,
             result=result,
             at_start=c["at_start"] | (pulls & (c["count"] == 0)),
-            time=put(c["time"], t_end),
+            time=put(c["time"], t2),
             group=put(c["group"], which),
             impact=put(c["impact"], is_contact),
             attached=put(c["attached"], attach),

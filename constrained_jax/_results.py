@@ -102,6 +102,13 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "the `Unilateral` a `rest_speed`: impacts slower than it are taken as "
         "inelastic and the contact is re-made (resting contact)."
     )
+    impact_not_approaching = (
+        "A `cjax.Unilateral`'s gap fell through zero where it was not closing (its "
+        "approach speed -d gap/dt was not positive): no impact law applies there. "
+        "The gap must be a continuous, differentiable function of (q, t) that is "
+        "positive while separated and falls through zero at contact (not a step, "
+        "e.g. from `jnp.where`)."
+    )
     invalid_restitution = (
         "A `cjax.Unilateral`'s `restitution(args)` is not in [0, 1] (or is NaN), or "
         "its `rest_speed(args)` is negative or NaN. Newton's coefficient of "

@@ -643,4 +643,4 @@ def project(
 
 
 def _TMP(active):
-    return {} if active is None else {'active': active}
+    return {} if active is None else {"active": active}

@@ -37,7 +37,6 @@ class IllinoisState(eqx.Module):
     side: Int[Array, ""]
     t: Float[Array, ""]
     f: Float[Array, ""]
-    diff: Float[Array, ""]
     stage: Int[Array, ""]  # 0: evaluate `lower`, 1: `upper`, 2: secant steps
 
 
@@ -51,11 +50,14 @@ class Illinois(optx.AbstractRootFinder):
     function is evaluated once per step, at one point (the bracket's ends at the first
     two steps, the new iterate after), so that it is traced once and not batched (a
     `jax.vmap` over two points would turn the `lax.cond`s of the KKT solve inside it
-    into selects that run, and compile, both branches). It stops as `optx.Newton`
-    does, when the last step is below `atol + rtol |t|` and the value below `atol`, or
-    when the bracket has shrunk to round-off; convergence is superlinear (order about
-    1.44), so the root is at round-off when it stops. diffrax zeroes all event values
-    but the triggered one's: their sum is the function whose root is found.
+    into selects that run, and compile, both branches). It stops when the bracket,
+    which always holds the sign change, is narrower than `atol + rtol |t|` (or has
+    shrunk to round-off, or at an exact zero), so the time returned is within that
+    of a crossing. Never on a small value: the event function is a gap (a length) or
+    a multiplier (a force), not a time, and a gap that starts a phase at `delta` below
+    `atol` would pass such a test before any crossing. Illinois moves both ends, so
+    the bracket shrinks superlinearly (order about 1.44). diffrax zeroes all event
+    values but the triggered one's: their sum is the function whose root is found.
     """
 
     rtol: float
@@ -69,7 +71,7 @@ class Illinois(optx.AbstractRootFinder):
         upper = jnp.asarray(options["upper"], dtype)
         inf = jnp.asarray(jnp.inf, dtype)
         return IllinoisState(
-            lower, upper, inf, inf, jnp.array(0), upper, inf, inf, jnp.array(0)
+            lower, upper, inf, inf, jnp.array(0), upper, inf, jnp.array(0)
         )
 
     @staticmethod
@@ -103,13 +105,12 @@ class Illinois(optx.AbstractRootFinder):
             side=side,
             t=t,
             f=f,
-            diff=t - state.t,
             stage=jnp.array(2),
         )
         # The first two steps only record `f(lower)`, then `f(upper)`; a root found
         # at `lower` ends the search there (`f == 0`, `terminate`).
-        at_lower = IllinoisState(a, b, f, fb, jnp.array(0), a, f, jnp.inf, jnp.array(1))
-        at_upper = IllinoisState(a, b, fa, f, jnp.array(0), b, f, jnp.inf, jnp.array(2))
+        at_lower = IllinoisState(a, b, f, fb, jnp.array(0), a, f, jnp.array(1))
+        at_upper = IllinoisState(a, b, fa, f, jnp.array(0), b, f, jnp.array(2))
         new = jax.tree.map(
             lambda x, y_, z: jnp.where(stage == 0, x, jnp.where(stage == 1, y_, z)),
             at_lower,
@@ -120,12 +121,13 @@ class Illinois(optx.AbstractRootFinder):
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, args, options, tags
-        small_step = jnp.abs(state.diff) < self.atol + self.rtol * jnp.abs(y)
+        width = jnp.abs(state.upper - state.lower)
+        narrow = width <= self.atol + self.rtol * jnp.abs(y)
         eps = jnp.finfo(jnp.result_type(y)).eps
-        collapsed = jnp.abs(state.upper - state.lower) <= 4 * eps * jnp.maximum(
+        collapsed = width <= 4 * eps * jnp.maximum(
             jnp.abs(state.upper), jnp.abs(state.lower)
         )
-        done = (small_step & (jnp.abs(state.f) < self.atol)) | collapsed
+        done = narrow | collapsed
         # (Before both ends are evaluated only an exact root stops it.)
         started = state.stage == 2
         return (started & done) | (state.f == 0), optx.RESULTS.successful
