@@ -39,7 +39,7 @@ import pytest
 import constrained_jax as cjax
 from constrained_jax.scenes import pendulum, two_cylinders as cyl
 
-from .helpers import run_python
+from .helpers import run_python, solve_with
 
 
 TIGHT = diffrax.PIDController(rtol=1e-11, atol=1e-11)
@@ -213,7 +213,7 @@ def test_saddle_point_gauge(solver, n, k):
     f = rng.normal(size=n)
     f_consistent = f - np.dot(f, v) * v
     bias = rng.normal(size=k)
-    solve = jax.jit(solver.solve)
+    solve = jax.jit(solve_with(solver))
     x, lam, singular = solve(*map(jnp.asarray, (mass, jac, f_consistent, bias)))
     if isinstance(solver, cjax.FullKKTLU) and singular:
         # Right or refused: partial pivoting may leave the dependent row where a
@@ -250,7 +250,7 @@ def test_consistent_redundant_constraints_stay_refused(solver):
     row = rng.normal(size=3)
     jac = np.stack([row, row])
     bias = np.array([0.4, 0.4])
-    _, _, singular = solver.solve(
+    _, _, singular = solve_with(solver)(
         *map(jnp.asarray, (mass, jac, rng.normal(size=3), bias))
     )
     assert singular
