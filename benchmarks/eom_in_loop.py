@@ -31,7 +31,7 @@ Medians of `--repeats` rounds (each round calls every program once, in turn).
         [--out benchmarks/results] [--loop-kernels]
 
 Writes `eom_in_loop.json` and `eom_in_loop.png` (`--loop-kernels`, which measures with
-`cjax.use_loop_kernels()`: `eom_in_loop_loop_kernels.json`, `.png`).
+`cjax.settings.use_loop_kernels()`: `eom_in_loop_loop_kernels.json`, `.png`).
 """
 
 import argparse
@@ -198,7 +198,7 @@ def main():
     if opts.loop_kernels:
         import constrained_jax as cjax
 
-        assert cjax.use_loop_kernels()
+        assert cjax.settings.use_loop_kernels()
     cases = {}
     for scene in ("pendulum", "cylinders"):
         cases[scene] = eom_in_loop(scene, opts.calls, opts.repeats)

@@ -272,3 +272,18 @@ def test_quiet_callback_errors_restores_the_level():
     with _compat.quiet_callback_errors():
         assert log.level == logging.CRITICAL
     assert log.level == before
+
+
+def test_the_upstream_reproducers_run():
+    """The reproducers of `docs/upstream/diffrax.md` (JAX and diffrax only) run and
+    their checks hold: the traced floor is the larger program, the looped floor is
+    the same bit for bit, and a solve saving at `ts` holds host callbacks and is not
+    cached where one saving at `t1` is."""
+    import re
+
+    page = PACKAGE.parent / "docs" / "upstream" / "diffrax.md"
+    blocks = re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)
+    assert len(blocks) == 2
+    for block in blocks:
+        run = run_python(block, timeout=600, CONSTRAINED_JAX_COMPILATION_CACHE=None)
+        assert run.returncode == 0, run.stdout + run.stderr
