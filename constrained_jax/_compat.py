@@ -16,6 +16,9 @@ maybe slower or less informative, on a version it was not written for:
 - `while_loop`, `buffer_at_set`: `equinox.internal`'s checkpointed loop with
     write-only buffers, diffrax's own loop. Any equinox that the installed diffrax
     runs with has them (diffrax imports them), so they need no guard of their own.
+- `lineax_internal`: `lineax.internal`'s flattening of operator structures, for the
+    library's own linear solvers (`DenseLU`, `MINRES`), as lineax's solvers use it.
+    diffrax and optimistix import `lineax.internal` too: no guard of its own.
 - [`runge_kutta_stages`][], [`stage_derivatives`][], [`component_dense_info`][]: the
     layout of the dense output of diffrax's Runge-Kutta solvers (`dense_info["k"]`,
     the stage increments). Guarded by the diffrax version; fallback: `None` from
@@ -39,6 +42,7 @@ from typing import NamedTuple
 import diffrax
 import equinox.internal as eqxi
 import jax
+import lineax.internal
 import numpy as np
 
 
@@ -101,6 +105,12 @@ def _quiet(log: logging.Logger):
 
 while_loop = eqxi.while_loop
 buffer_at_set = eqxi.buffer_at_set
+
+
+# --------------------------------------------------------------------------------------
+# lineax: the flattening of operator structures, for the library's linear solvers.
+
+lineax_internal = lineax.internal
 
 
 # --------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ def _private(module: str) -> bool:
     """Whether `module` names a private module of one of `_LIBRARIES`."""
     parts = module.split(".")
     return parts[0] in _LIBRARIES and (
-        any(p.startswith("_") for p in parts[1:]) or module == "equinox.internal"
+        any(p.startswith("_") for p in parts[1:]) or "internal" in parts[1:]
     )
 
 
@@ -74,7 +74,7 @@ def test_no_private_reach_ins_outside_the_adapter():
     top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
     names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names]
     names += [n.module for n in top if isinstance(n, ast.ImportFrom) and n.module]
-    assert [n for n in names if _private(n)] == ["equinox.internal"]
+    assert [n for n in names if _private(n)] == ["equinox.internal", "lineax.internal"]
 
 
 def test_the_reach_in_check_finds_reach_ins(tmp_path):
@@ -82,6 +82,7 @@ def test_the_reach_in_check_finds_reach_ins(tmp_path):
     source = tmp_path / "x.py"
     source.write_text(
         "import equinox.internal as eqxi\n"
+        "import lineax.internal as lxi\n"
         "from jax._src import xla_bridge\n"
         "from diffrax._root_finder import use_stepsize_tol\n"
         "import diffrax\n"
@@ -92,6 +93,7 @@ def test_the_reach_in_check_finds_reach_ins(tmp_path):
     )
     assert _reach_ins(source) == [
         "equinox.internal",
+        "lineax.internal",
         "jax._src",
         "diffrax._root_finder",
         "diffrax._integrate",
