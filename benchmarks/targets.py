@@ -34,8 +34,8 @@ Rows (float64, after compilation, medians; ratios within this run):
     python benchmarks/targets.py [--out benchmarks/results] [--fast-compilation]
         [--loop-kernels]
 
-Writes `targets.json` and prints the table for `benchmarks/README.md`. `--fast-compilation`
-measures with XLA:CPU's older code generator
+Writes `targets.json` and prints the table for `benchmarks/README.md`.
+`--fast-compilation` measures with XLA:CPU's older code generator
 (`cjax.settings.use_fast_compilation()`) and writes `targets_fast_compilation.json`;
 `--loop-kernels` with small loops compiled into one function
 (`cjax.settings.use_loop_kernels()`), `targets_loop_kernels.json` (both:
