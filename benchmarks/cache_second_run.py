@@ -4,10 +4,14 @@ Each line of the table is a fresh Python process that turns the cache on in one 
 folder (`cjax.enable_compilation_cache(folder)`) and times the first call (tracing,
 lowering, compilation or a cache read, and the run) of two `simulate` programs of
 the two cylinders: attached (Tsit5, 9 saves) and the release run (`contact_system`).
-The first process fills the folder, the next ones read it. With `--tour`, also the
-wall time of `constrained-jax tour --no-plots`, run twice on another new folder.
+The first process fills the folder, the next ones read it. The processes opt into the
+library's diffrax patch (`cjax.settings.use_diffrax_patch()`, as the command line
+does), without which the `simulate` programs hold diffrax's host callbacks and are not
+stored; `--diffrax-defaults` measures without it. With `--tour`, also the wall time of
+`constrained-jax tour --no-plots` (with `--diffrax-defaults` if given), run twice on
+another new folder.
 
-    python benchmarks/cache_second_run.py [--processes 3] [--tour]
+    python benchmarks/cache_second_run.py [--processes 3] [--tour] [--diffrax-defaults]
 
 Writes `benchmarks/results/cache_second_run.json`.
 """
@@ -31,6 +35,8 @@ jax.config.update("jax_enable_x64", True)
 import constrained_jax as cjax
 from constrained_jax.scenes import two_cylinders as cyl
 
+if sys.argv[2] == "patch":
+    assert cjax.settings.use_diffrax_patch()
 cjax.enable_compilation_cache(sys.argv[1])
 args = cyl.default_args()
 q0, qd0 = cyl.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
@@ -49,11 +55,11 @@ print(json.dumps(out))
 """
 
 
-def _first_calls(folder: str, processes: int) -> list[dict]:
+def _first_calls(folder: str, processes: int, patch: bool) -> list[dict]:
     rows = []
     for _ in range(processes):
         run = subprocess.run(
-            [sys.executable, "-c", _PROGRAM, folder],
+            [sys.executable, "-c", _PROGRAM, folder, "patch" if patch else "plain"],
             capture_output=True,
             text=True,
             check=True,
@@ -62,13 +68,16 @@ def _first_calls(folder: str, processes: int) -> list[dict]:
     return rows
 
 
-def _tour_twice(folder: str) -> list[float]:
+def _tour_twice(folder: str, patch: bool) -> list[float]:
     env = {**os.environ, "CONSTRAINED_JAX_COMPILATION_CACHE": folder}
+    command = [sys.executable, "-m", "constrained_jax", "tour", "--no-plots"]
+    if not patch:
+        command.append("--diffrax-defaults")
     walls = []
     for _ in range(2):
         start = time.perf_counter()
         subprocess.run(
-            [sys.executable, "-m", "constrained_jax", "tour", "--no-plots"],
+            command,
             env=env,
             capture_output=True,
             check=True,
@@ -81,10 +90,12 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--processes", type=int, default=3)
     parser.add_argument("--tour", action="store_true")
+    parser.add_argument("--diffrax-defaults", action="store_true")
     opts = parser.parse_args()
-    result = {}
+    patch = not opts.diffrax_defaults
+    result = {"diffrax_patch": patch}
     with tempfile.TemporaryDirectory() as folder:
-        result["first_calls_s"] = _first_calls(folder, opts.processes)
+        result["first_calls_s"] = _first_calls(folder, opts.processes, patch)
     for i, row in enumerate(result["first_calls_s"]):
         print(
             f"process {i + 1}: attached {row['attached']:.2f} s, "
@@ -92,7 +103,7 @@ def main():
         )
     if opts.tour:
         with tempfile.TemporaryDirectory() as folder:
-            result["tour_s"] = _tour_twice(folder)
+            result["tour_s"] = _tour_twice(folder, patch)
         print("tour: first {:.1f} s, second {:.1f} s".format(*result["tour_s"]))
     RESULTS.parent.mkdir(exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=1))

@@ -2,9 +2,10 @@
 measured in fresh processes, the settings alternating.
 
 Settings (`--settings`, comma-separated; the first is the reference of the ratios):
-`default` (XLA's defaults), `fast` (`cjax.use_fast_compilation()`: the older code
-generator), `loops` (`cjax.use_loop_kernels()`: small `while` loops compiled into one
-function), `fast+loops` (both, as the command line sets them).
+`default` (XLA's defaults), `fast` (`cjax.settings.use_fast_compilation()`: the
+older code generator), `loops` (`cjax.settings.use_loop_kernels()`: small `while`
+loops compiled into one function), `fast+loops` (both, as the command line sets
+them).
 
 XLA reads its flags once per process, so each measurement is a child process (this
 script with `--child SETTING`); the parent runs `--rounds` rounds, each one child per
@@ -48,9 +49,9 @@ def child(setting: str, repeats: int, release: bool) -> dict:
     import constrained_jax as cjax
 
     if "fast" in setting:
-        assert cjax.use_fast_compilation()
+        assert cjax.settings.use_fast_compilation()
     if "loops" in setting:
-        assert cjax.use_loop_kernels()
+        assert cjax.settings.use_loop_kernels()
     import jax
 
     jax.config.update("jax_enable_x64", True)

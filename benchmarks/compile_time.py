@@ -15,7 +15,7 @@ sparsity patterns cleared before each (and no persistent compilation cache).
     python benchmarks/compile_time.py [--repeats 3] [--only a,a',floor,b,c]
         [--fast-compilation]
 
-`--fast-compilation` calls `cjax.use_fast_compilation()` (XLA:CPU's older code
+`--fast-compilation` calls `cjax.settings.use_fast_compilation()` (XLA:CPU's older code
 generator) after the imports, before the first computation.
 
 Writes `benchmarks/results/compile_time.json`.
@@ -204,11 +204,11 @@ def main():
     parser.add_argument(
         "--fast-compilation",
         action="store_true",
-        help="XLA:CPU's older code generator (cjax.use_fast_compilation())",
+        help="XLA:CPU's older code generator (cjax.settings.use_fast_compilation())",
     )
     ns = parser.parse_args()
     if ns.fast_compilation:
-        assert cjax.use_fast_compilation()
+        assert cjax.settings.use_fast_compilation()
     jax.config.update("jax_enable_compilation_cache", False)
     results = {}
     for key in ns.only.split(","):

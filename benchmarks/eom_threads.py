@@ -90,8 +90,9 @@ def _child(sizes: list[int], pin: bool, block: int = BLOCK) -> dict:
 
 def run_child(sizes: list[int], pin: bool, block: int = BLOCK) -> dict:
     """`_child` in a fresh Python process (pinned to one CPU with `pin`). The process
-    inherits `XLA_FLAGS`, so a parent that called `cjax.use_fast_compilation()` or
-    `cjax.use_loop_kernels()` measures with the same settings."""
+    inherits `XLA_FLAGS`, so a parent that called
+    `cjax.settings.use_fast_compilation()` or `cjax.settings.use_loop_kernels()`
+    measures with the same settings."""
     cmd = [sys.executable, __file__, "--child", "--sizes", ",".join(map(str, sizes))]
     cmd += ["--block", str(block)]
     if pin:

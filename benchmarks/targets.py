@@ -36,9 +36,9 @@ Rows (float64, after compilation, medians; ratios within this run):
 
 Writes `targets.json` and prints the table for `benchmarks/README.md`.
 `--fast-compilation` measures with XLA:CPU's older code generator
-(`cjax.use_fast_compilation()`) and writes `targets_fast_compilation.json`;
+(`cjax.settings.use_fast_compilation()`) and writes `targets_fast_compilation.json`;
 `--loop-kernels` with small loops compiled into one function
-(`cjax.use_loop_kernels()`), `targets_loop_kernels.json` (both:
+(`cjax.settings.use_loop_kernels()`), `targets_loop_kernels.json` (both:
 `targets_fast_compilation_loop_kernels.json`).
 """
 
@@ -299,10 +299,11 @@ _FIRST_CALL = """
 import json, sys
 sys.path.insert(0, {folder!r})
 import constrained_jax as cjax
+settings = getattr(cjax, "settings", cjax)  # (revisions before `cjax.settings`)
 if {fast}:
-    cjax.use_fast_compilation()
+    settings.use_fast_compilation()
 if {loops}:
-    cjax.use_loop_kernels()
+    settings.use_loop_kernels()
 import jax
 jax.config.update("jax_enable_x64", True)
 import chain
@@ -348,14 +349,14 @@ def main() -> None:
     parser.add_argument(
         "--fast-compilation",
         action="store_true",
-        help="XLA:CPU's older code generator (cjax.use_fast_compilation()); writes "
-        "targets_fast_compilation.json",
+        help="XLA:CPU's older code generator "
+        "(cjax.settings.use_fast_compilation()); writes targets_fast_compilation.json",
     )
     parser.add_argument(
         "--loop-kernels",
         action="store_true",
-        help="small loops compiled into one function (cjax.use_loop_kernels()); "
-        "writes targets_loop_kernels.json",
+        help="small loops compiled into one function "
+        "(cjax.settings.use_loop_kernels()); writes targets_loop_kernels.json",
     )
     parser.add_argument(
         "--single-calls",
@@ -364,9 +365,9 @@ def main() -> None:
     )
     opts = parser.parse_args()
     if opts.fast_compilation:
-        assert cjax.use_fast_compilation()
+        assert cjax.settings.use_fast_compilation()
     if opts.loop_kernels:
-        assert cjax.use_loop_kernels()
+        assert cjax.settings.use_loop_kernels()
     rows = measure(opts)
     os.makedirs(opts.out, exist_ok=True)
     name = "targets"

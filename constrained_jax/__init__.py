@@ -7,11 +7,7 @@ site (`docs/`, its architecture page for the design).
 
 import importlib.metadata
 
-from . import plot as plot, scenes as scenes
-from ._code_generator import (
-    use_fast_compilation as use_fast_compilation,
-    use_loop_kernels as use_loop_kernels,
-)
+from . import plot as plot, scenes as scenes, settings as settings
 from ._compilation_cache import (
     enable_compilation_cache as enable_compilation_cache,
 )

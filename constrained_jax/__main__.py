@@ -25,11 +25,15 @@ Compiled programs are kept in JAX's persistent compilation cache
 `~/.cache/constrained_jax/jax`), so a second run skips nearly all of the compilation;
 `--no-compilation-cache` (or `CONSTRAINED_JAX_COMPILATION_CACHE=0`) turns it off.
 Programs are compiled with XLA:CPU's older code generator
-(`constrained_jax.use_fast_compilation`: about 2x faster to compile, the same results
-to round-off, programs up to 27 % slower to run; a first run of the tour took 24-27 s
-instead of 36-41 s on 2 cores), and small loops (a single trajectory) into one
-function each (`constrained_jax.use_loop_kernels`: 1.7-5x faster single trajectories,
-and faster compilation too); `--xla-defaults` keeps XLA's defaults.
+(`constrained_jax.settings.use_fast_compilation`: about 2x faster to compile, the same
+results to round-off, programs up to 27 % slower to run; a first run of the tour took
+24-27 s instead of 36-41 s on 2 cores), and small loops (a single trajectory) into one
+function each (`constrained_jax.settings.use_loop_kernels`: 1.7-5x faster single
+trajectories, and faster compilation too); `--xla-defaults` keeps XLA's defaults. The
+diffrax solves are traced with the library's diffrax patch
+(`constrained_jax.settings.use_diffrax_patch`: smaller programs, which the
+compilation cache stores, for the diffrax release it was written for);
+`--diffrax-defaults` runs diffrax unchanged.
 
 Pictures need matplotlib (`pip install "constrained_jax[plot]"`); without it the
 checks still run, and the pictures are skipped with a message saying so.
@@ -126,6 +130,21 @@ def _code_generator(xla_defaults: bool) -> str:
     return " and ".join(parts) + " (--xla-defaults: XLA's defaults)"
 
 
+def _diffrax_patch(diffrax_defaults: bool) -> str:
+    """Turns on the library's diffrax patch unless `diffrax_defaults`, and says
+    whether diffrax runs patched."""
+    from ._diffrax_integrate import diffrax_patch_on, use_diffrax_patch
+
+    if not diffrax_defaults:
+        with warnings.catch_warnings():
+            # Another diffrax release: unchanged, as the line printed says.
+            warnings.simplefilter("ignore")
+            use_diffrax_patch()
+    if diffrax_patch_on():
+        return "diffrax patched (--diffrax-defaults: unchanged)"
+    return "diffrax unchanged"
+
+
 def _have_matplotlib() -> bool:
     return importlib.util.find_spec("matplotlib") is not None
 
@@ -146,7 +165,8 @@ def _parser() -> argparse.ArgumentParser:
             "Compiled programs are kept in JAX's persistent compilation cache, so a "
             "second run skips most of the compilation (--no-compilation-cache), and "
             "compiled with XLA:CPU's older code generator, about 2x faster to compile, "
-            "small loops into one function each (--xla-defaults)."
+            "small loops into one function each (--xla-defaults), diffrax patched "
+            "for smaller programs (--diffrax-defaults)."
         ),
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -175,8 +195,19 @@ def _parser() -> argparse.ArgumentParser:
             help=(
                 "compile with XLA's default CPU settings (default: its older code "
                 "generator, about 2x faster to compile, and small loops into one "
-                "function each; see constrained_jax.use_fast_compilation and "
-                "constrained_jax.use_loop_kernels)"
+                "function each; see constrained_jax.settings.use_fast_compilation "
+                "and constrained_jax.settings.use_loop_kernels)"
+            ),
+        )
+        p.add_argument(
+            "--diffrax-defaults",
+            action="store_true",
+            help=(
+                "run diffrax unchanged (default: the library's diffrax patch, for "
+                "the diffrax release it was written for: a smaller t1 floor and no "
+                "host callbacks for save times the library has checked, so the "
+                "compilation cache stores the dynamics programs; see "
+                "constrained_jax.settings.use_diffrax_patch)"
             ),
         )
         p.add_argument(
@@ -235,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     from . import enable_compilation_cache
 
     code_generator = _code_generator(ns.xla_defaults)
+    diffrax_patch = _diffrax_patch(ns.diffrax_defaults)
     if not ns.no_compilation_cache:
         enable_compilation_cache()
     jax.config.update("jax_enable_x64", True)
@@ -278,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"picture: {tour.save(ns.out, name, draw)}")
     print(
         f"\ntotal {time.perf_counter() - start:.1f} s (compilation included, "
-        f"{code_generator})"
+        f"{code_generator}; {diffrax_patch})"
     )
     print("all checks passed" if ok else "SOME CHECKS FAILED")
     return 0 if ok else 1

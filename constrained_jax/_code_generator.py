@@ -13,12 +13,13 @@ s instead of 36-41 s. The price is run time: 0-27 % slower (the two cylinders'
 equations of motion batched over 1e4 states 27 %, a gradient through `simulate` 22 %,
 one trajectory 5 %). So it is not the library's default: the command line turns it on
 (`--xla-defaults` keeps XLA's), and users opt in with
-[`constrained_jax.use_fast_compilation`][] at the top of a script or a notebook.
+[`constrained_jax.settings.use_fast_compilation`][] at the top of a script or a
+notebook.
 
 XLA:CPU runs a program as a sequence of kernels, one launch per fusion, except for a
 `while` loop small enough for its `SmallWhileLoopHoistingPass`, which it compiles into
 one function. A single trajectory of a small system is such a loop, above XLA's
-default limit (1 kB): [`constrained_jax.use_loop_kernels`][] raises the limit
+default limit (1 kB): [`constrained_jax.settings.use_loop_kernels`][] raises the limit
 (`benchmarks/README.md`, "Small loops compiled into one function").
 
 XLA reads its flags (the environment variable `XLA_FLAGS`) once, when JAX starts its
@@ -32,7 +33,7 @@ import operator
 import os
 import warnings
 
-from jax._src import xla_bridge
+from ._compat import backends_started
 
 
 _FLAG = "--xla_cpu_use_fusion_emitters"
@@ -46,6 +47,21 @@ def _jaxlib_version() -> str:
         return importlib.metadata.version("jaxlib")
     except importlib.metadata.PackageNotFoundError:
         return "unknown"
+
+
+def _too_late(name: str) -> bool:
+    """Whether JAX's backend has started (and read `XLA_FLAGS`). Where this JAX does
+    not say, the flag is set with a warning that it takes effect only if the backend
+    has not started yet."""
+    started = backends_started()
+    if started is None:
+        warnings.warn(
+            f"{name}: this JAX does not say whether its backend has started; the "
+            "setting takes effect only if no computation has run yet.",
+            stacklevel=3,
+        )
+        return False
+    return started
 
 
 def _user_choice(flags: str) -> bool | None:
@@ -113,7 +129,7 @@ def use_fast_compilation() -> bool:
             stacklevel=2,
         )
         return False
-    if xla_bridge.backends_are_initialized():
+    if _too_late("use_fast_compilation"):
         raise RuntimeError(
             "use_fast_compilation() must be called before the first JAX computation: "
             "JAX's backend has already started and read XLA_FLAGS. Call it at the top "
@@ -174,8 +190,8 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
     Call it at the top of a script or notebook, before the first computation: XLA
     reads its flags once, when JAX starts its backend (importing `jax` and
     `constrained_jax` does not start it). It may be combined with
-    [`constrained_jax.use_fast_compilation`][]; the command line `constrained-jax`
-    turns both on.
+    [`constrained_jax.settings.use_fast_compilation`][]; the command line
+    `constrained-jax` turns both on.
 
     It appends `--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=`
     `max_bytes` to the environment variable `XLA_FLAGS` (or adds the option to the
@@ -230,7 +246,7 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
             stacklevel=2,
         )
         return False
-    if xla_bridge.backends_are_initialized():
+    if _too_late("use_loop_kernels"):
         raise RuntimeError(
             "use_loop_kernels() must be called before the first JAX computation: "
             "JAX's backend has already started and read XLA_FLAGS. Call it at the top "

@@ -24,7 +24,6 @@ import functools
 import hashlib
 import itertools
 import json
-import logging
 import math
 import operator
 import os
@@ -42,6 +41,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._compat import distributed_client, quiet_callback_errors
 from ._misc import progress_bar
 
 
@@ -576,13 +576,8 @@ def _raise_with_rows(error, compiled, host_in, treedef, sharding, start, n):
         return failing(rows[:half]) + failing(rows[half:])
 
     # The bisection's own failures are expected: keep JAX from logging each one.
-    log = logging.getLogger("jax._src.callback")
-    level = log.level
-    log.setLevel(logging.CRITICAL)
-    try:
+    with quiet_callback_errors():
         rows = failing(list(range(real))) if real > 1 else list(range(real))
-    finally:
-        log.setLevel(level)
     if not rows:  # no subset raises on its own: report the error as it was
         raise error
     named = [start + r for r in rows]
@@ -734,12 +729,9 @@ class _Peers:
     def __init__(self):
         self.me = jax.process_index()
         self.key = f"constrained_jax.sweep/{next(_SWEEPS)}/failed/"
-        try:  # private to JAX: without it a failure is seen by JAX's heartbeat only
-            from jax._src import distributed
-
-            self.client = distributed.global_state.client
-        except Exception:
-            self.client = None
+        # Private to JAX (`_compat`): without it a failure is seen by JAX's
+        # heartbeat only.
+        self.client = distributed_client()
 
     def report(self, error: BaseException) -> None:
         if self.client is None or isinstance(error, _PeerFailed):

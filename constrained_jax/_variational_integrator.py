@@ -72,12 +72,12 @@ import functools as ft
 from collections.abc import Callable
 
 import equinox as eqx
-import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._compat import buffer_at_set, while_loop
 from ._constraints import Holonomic
 from ._implicit import implicit_jvp, nan_derivatives_if_failed
 from ._misc import (
@@ -623,8 +623,8 @@ def _integrate(
         state, ok, iterations = integrator.step(system, t_k, h, c.state, args)
         num_steps = c.num_steps + 1
         at_save = num_steps == ends[seg]
-        q_out = eqxi.buffer_at_set(c.q_out, seg, state.q, pred=at_save)
-        qd_out = eqxi.buffer_at_set(c.qd_out, seg, state.qd, pred=at_save)
+        q_out = buffer_at_set(c.q_out, seg, state.q, pred=at_save)
+        qd_out = buffer_at_set(c.qd_out, seg, state.qd, pred=at_save)
         next_seg = next_nonempty[jnp.minimum(seg + 1, num_saves - 1)]
         next_seg = jnp.where(seg + 1 < num_saves, next_seg, num_saves)
         return _Carry(
@@ -637,7 +637,7 @@ def _integrate(
             qd_out=qd_out,
         )
 
-    final = eqxi.while_loop(
+    final = while_loop(
         cond,
         body,
         carry0,

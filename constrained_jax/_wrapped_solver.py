@@ -7,24 +7,26 @@ first; [`AbstractForwardingSolver`][] then forwards everything but `init` and `s
 the wrapped solver.
 """
 
+import functools
+
 import diffrax
 import equinox as eqx
 
 
+@functools.cache
+def _stepsize_tol():
+    """diffrax's "take it from the step-size controller" marker: the `rtol` of a
+    root finder made by the public `diffrax.with_stepsize_controller_tols` (the
+    default of diffrax's implicit solvers)."""
+    return diffrax.with_stepsize_controller_tols(diffrax.VeryChord)().rtol
+
+
 def _is_stepsize_tol(value) -> bool:
     """Whether a root finder's `rtol`/`atol`/`norm` is diffrax's "take it from the
-    step-size controller" marker.
-
-    The marker is the private `diffrax._root_finder.use_stepsize_tol` (diffrax 0.7 has
-    no public name for it); `diffeqsolve` replaces it for a bare implicit solver only,
-    so a wrapper must do the same (`_resolve_implicit_tolerances`). This function is
-    the only place the private name is used: if diffrax moves or renames it, find it
-    where `diffrax/_integrate.py` imports it and change the import here
-    (tests/test_simulate.py::test_projection_with_an_implicit_solver fails until then).
-    """
-    from diffrax._root_finder import use_stepsize_tol
-
-    return value is use_stepsize_tol
+    step-size controller" marker. `diffeqsolve` replaces it for a bare implicit
+    solver only, so a wrapper must do the same (`_resolve_implicit_tolerances`;
+    tests/test_simulate.py::test_projection_with_an_implicit_solver)."""
+    return value is _stepsize_tol()
 
 
 def _resolve_implicit_tolerances(solver, stepsize_controller):

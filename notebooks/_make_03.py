@@ -70,7 +70,10 @@ import constrained_jax as cjax
 
 # Compiled programs are kept on disk (`~/.cache/constrained_jax/jax`): a second run
 # of the notebook skips most of the compilation. CONSTRAINED_JAX_COMPILATION_CACHE=0
-# turns it off.
+# turns it off. The `simulate` programs are kept too with the library's diffrax patch
+# (`use_diffrax_patch`: without it they hold diffrax's host callbacks, which the
+# cache does not store; the results are the same).
+cjax.settings.use_diffrax_patch()
 cjax.enable_compilation_cache()
 jax.config.update("jax_enable_x64", True)
 """

@@ -56,12 +56,16 @@ import constrained_jax as cjax
 
 # Compiled programs are kept on disk (`~/.cache/constrained_jax/jax`): a second run
 # of the notebook skips most of the compilation. CONSTRAINED_JAX_COMPILATION_CACHE=0
-# turns it off. Where compilation dominates, `cjax.use_fast_compilation()` here,
-# before the first computation, compiles about 2x faster (XLA:CPU's older code
-# generator; the programs run up to 27 % slower), and `cjax.use_loop_kernels()`
-# compiles each small integration loop into one function (one trajectory 1.7-5x
-# faster, see the README's "Faster single trajectories"). This notebook keeps XLA's
-# defaults: the wall times below are those of XLA's default settings.
+# turns it off. The `simulate` programs are kept too with the library's diffrax patch
+# (`use_diffrax_patch`: without it they hold diffrax's host callbacks, which the
+# cache does not store; the results are the same). Where compilation dominates,
+# `cjax.settings.use_fast_compilation()` here, before the first computation,
+# compiles about 2x faster (XLA:CPU's older code generator; the programs run up to
+# 27 % slower), and `cjax.settings.use_loop_kernels()` compiles each small
+# integration loop into one function (one trajectory 1.7-5x faster, see the
+# README's "Faster single trajectories"). This notebook keeps XLA's defaults: the
+# wall times below are those of XLA's default settings.
+cjax.settings.use_diffrax_patch()
 cjax.enable_compilation_cache()
 jax.config.update("jax_enable_x64", True)
 """

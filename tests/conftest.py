@@ -61,6 +61,26 @@ def getkey():
     return _getkey
 
 
+@pytest.fixture
+def diffrax_patch():
+    """`set(on)`: the library's opt-in diffrax patch on or off
+    (`cjax.settings.use_diffrax_patch`), with JAX's caches cleared so that the
+    programs traced next see it (a cached trace keeps what it was traced with). The
+    worker's setting is restored afterwards (the in-process tour of `test_cli.py`
+    turns the patch on)."""
+    from constrained_jax import _diffrax_integrate
+
+    before = _diffrax_integrate.diffrax_patch_on()
+
+    def set_patch(on: bool) -> bool:
+        now = _diffrax_integrate.use_diffrax_patch(on)
+        jax.clear_caches()
+        return now
+
+    yield set_patch
+    _diffrax_integrate.use_diffrax_patch(before)
+
+
 # The files whose tests are long single items (subprocesses, kernels, the tour, big
 # reverse-mode programs) run first, whole files together (module fixtures stay set
 # up once), so that the two xdist workers do not end on one long item while the other

@@ -237,8 +237,8 @@ def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
 
 def test_the_older_code_generator_by_default():
     """A fresh `constrained-jax` process compiles with XLA:CPU's older code generator
-    and small loops as one function each (`cjax.use_fast_compilation`,
-    `cjax.use_loop_kernels`: the flags in its `XLA_FLAGS`) and says so."""
+    and small loops as one function each (`cjax.settings.use_fast_compilation`,
+    `cjax.settings.use_loop_kernels`: the flags in its `XLA_FLAGS`) and says so."""
     run = run_python(
         "import sys; from constrained_jax.__main__ import main; "
         "code = main(['scene', 'cylinder_volume', '--no-plots', "

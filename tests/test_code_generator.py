@@ -30,12 +30,12 @@ def test_appended_after_import_and_read_by_xla():
     code = """
 import os, jax, jax.numpy as jnp
 import constrained_jax as cjax
-assert cjax.use_fast_compilation() is True
+assert cjax.settings.use_fast_compilation() is True
 flags = os.environ["XLA_FLAGS"]
 print(flags)
 print(float(jax.jit(lambda x: jnp.sum(jnp.sin(x) ** 2))(jnp.arange(3.0))))
 print(len(jax.devices("cpu")))
-assert cjax.use_fast_compilation() is True
+assert cjax.settings.use_fast_compilation() is True
 assert os.environ["XLA_FLAGS"] == flags
 """
     run = run_python(
@@ -57,7 +57,9 @@ def test_the_users_own_setting_is_kept(monkeypatch, flags, expected):
     the backend started (then nothing needs to change); asking for the fusion
     emitters gives `False` and a warning."""
     warning = "user's setting is kept"
-    _assert_keeps(monkeypatch, cjax.use_fast_compilation, flags, expected, warning)
+    _assert_keeps(
+        monkeypatch, cjax.settings.use_fast_compilation, flags, expected, warning
+    )
 
 
 def _assert_keeps(monkeypatch, use, flags, expected, warning):
@@ -83,7 +85,7 @@ def test_too_late_is_refused(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
     jnp.zeros(1).block_until_ready()
     with pytest.raises(RuntimeError, match="before the first JAX computation"):
-        cjax.use_fast_compilation()
+        cjax.settings.use_fast_compilation()
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=true"
 
 
@@ -93,7 +95,7 @@ def test_an_unknown_jaxlib_keeps_xlas_defaults(monkeypatch):
     monkeypatch.setattr(_code_generator, "_jaxlib_version", lambda: "0.11.2")
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     with pytest.warns(UserWarning, match="jaxlib 0.11.2"):
-        assert cjax.use_fast_compilation() is False
+        assert cjax.settings.use_fast_compilation() is False
     assert "XLA_FLAGS" not in os.environ
 
 
@@ -111,8 +113,8 @@ import os, jax, jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 import constrained_jax as cjax
 if os.environ.get("TURN_ON"):
-    assert cjax.use_loop_kernels() is True
-    assert cjax.use_loop_kernels() is True  # a second call changes nothing
+    assert cjax.settings.use_loop_kernels() is True
+    assert cjax.settings.use_loop_kernels() is True  # a second call changes nothing
 def run(x):
     body = lambda i, x: jnp.sin(x * 1.001 + i) * jnp.cos(x[::-1]) + 0.5 * x
     return jax.lax.fori_loop(0, 100, body, x)
@@ -141,7 +143,7 @@ def test_loop_kernels_compile_the_loop_into_one_function():
     other flags are kept (2 CPU devices)."""
     user = "--xla_force_host_platform_device_count=2"
     flags, small, on = _run_loop_program(True, user)
-    assert flags == f"{user} {_LOOP}={cjax._code_generator.LOOP_KERNEL_BYTES}"
+    assert flags == f"{user} {_LOOP}={cjax.settings.LOOP_KERNEL_BYTES}"
     assert small
     flags, small, off = _run_loop_program(False, user)
     assert flags == user
@@ -153,15 +155,13 @@ def test_loop_kernels_merge_with_the_users_backend_options(monkeypatch):
     """The option joins the user's own `--xla_backend_extra_options` (XLA reads only
     the last such flag), and the rest of `XLA_FLAGS` is left as it is. (No backend
     starts here: XLA aborts on a backend option it does not know.)"""
-    monkeypatch.setattr(
-        _code_generator.xla_bridge, "backends_are_initialized", lambda: False
-    )
+    monkeypatch.setattr(_code_generator, "backends_started", lambda: False)
     user = (
         "--xla_cpu_multi_thread_eigen=true  "
         "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling"
     )
     monkeypatch.setenv("XLA_FLAGS", user)
-    assert cjax.use_loop_kernels(np.int64(4096)) is True  # any integer type
+    assert cjax.settings.use_loop_kernels(np.int64(4096)) is True  # any integer type
     assert os.environ["XLA_FLAGS"] == (
         f"{user},xla_cpu_small_while_loop_byte_threshold=4096"
     )
@@ -175,7 +175,11 @@ def test_loop_kernels_keep_the_users_own_limit(monkeypatch, value, expected):
         f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={value}"
     )
     _assert_keeps(
-        monkeypatch, cjax.use_loop_kernels, flags, expected, "turns the pass off"
+        monkeypatch,
+        cjax.settings.use_loop_kernels,
+        flags,
+        expected,
+        "turns the pass off",
     )
 
 
@@ -185,10 +189,10 @@ def test_loop_kernels_too_late_or_a_bad_limit_is_refused(monkeypatch):
     jnp.zeros(1).block_until_ready()
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
     with pytest.raises(RuntimeError, match="before the first JAX computation"):
-        cjax.use_loop_kernels()
+        cjax.settings.use_loop_kernels()
     for bad in (0, -5, 1.5, True, "65536"):
         with pytest.raises(ValueError, match="positive integer"):
-            cjax.use_loop_kernels(bad)
+            cjax.settings.use_loop_kernels(bad)
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=true"
 
 
@@ -198,5 +202,5 @@ def test_loop_kernels_an_unknown_jaxlib_keeps_xlas_defaults(monkeypatch):
     monkeypatch.setattr(_code_generator, "_jaxlib_version", lambda: "0.11.2")
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     with pytest.warns(UserWarning, match="jaxlib 0.11.2"):
-        assert cjax.use_loop_kernels() is False
+        assert cjax.settings.use_loop_kernels() is False
     assert "XLA_FLAGS" not in os.environ

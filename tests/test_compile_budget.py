@@ -208,13 +208,16 @@ def _callbacks(jaxpr) -> list[str]:
     return found
 
 
-def test_simulate_and_shooting_programs_have_no_host_callbacks():
+def test_simulate_and_shooting_programs_have_no_host_callbacks(diffrax_patch):
     # JAX never writes a program with host callbacks to its persistent compilation
     # cache (`cjax.enable_compilation_cache`). diffrax checks traced save times with
     # `equinox.error_if`s (host callbacks); `simulate` checks them itself (a traced
-    # bad grid is `RESULTS.invalid_time_grid`, test_sharp_edges_dynamics.py) and
-    # drops diffrax's. Attached, release and contact-event runs, save times traced.
+    # bad grid is `RESULTS.invalid_time_grid`, test_sharp_edges_dynamics.py) and,
+    # with the opt-in diffrax patch (`cjax.settings.use_diffrax_patch`), drops
+    # diffrax's. Attached, release and contact-event runs, save times traced.
     from constrained_jax.scenes import bouncing_ball as ball
+
+    assert diffrax_patch(True)
 
     ts = jnp.linspace(0.0, 1.0, 5)
     cases = []
@@ -257,9 +260,6 @@ def test_simulate_and_shooting_programs_have_no_host_callbacks():
     shooting = jax.make_jaxpr(shoot)({"rho_g": 2.5, "length": 4.0})
     assert _callbacks(shooting.jaxpr) == []
     # The library's own scoped change: diffrax's checks are back outside it.
-    from constrained_jax import _diffrax_integrate
-
-    assert _diffrax_integrate.active()
     with jax.numpy_dtype_promotion("standard"):
         plain = jax.make_jaxpr(
             lambda ts: (

@@ -495,17 +495,19 @@ def test_variational_integrator_refuses_a_progress_meter():
         )
 
 
-def test_t1_floor_is_bitwise_diffrax():
-    """diffrax's `t1 - 100 ULP` floor (100 chained `prevbefore`s) comes out of the
-    library's scanned chain bit for bit, at the edges of the floating-point range too,
-    under `jit`, `vmap` and `jvp`; and the program of a `simulate` with a traced `t1`
-    holds a loop, not 100 unrolled `nextafter`s."""
+def test_t1_floor_is_bitwise_diffrax(diffrax_patch):
+    """With the opt-in diffrax patch (`cjax.settings.use_diffrax_patch`), diffrax's
+    `t1 - 100 ULP` floor (100 chained `prevbefore`s) comes out of the patch's looped
+    chain bit for bit, at the edges of the floating-point range too, under `jit`,
+    `vmap` and `jvp`; and the program of a `simulate` with a traced `t1` holds a
+    loop, not 100 unrolled `nextafter`s. Without it (the default), the program is
+    plain diffrax's."""
     import equinox.internal as eqxi
     from diffrax import _integrate
 
-    from constrained_jax import _diffrax_integrate as floor
+    from constrained_jax import _compat as floor
 
-    assert floor.active(), "the pinned diffrax should get the scanned t1 floor"
+    assert floor.diffrax_patch_available(), "the pinned diffrax should be patchable"
 
     def chain(prevbefore):
         def fn(t):
@@ -541,6 +543,12 @@ def test_t1_floor_is_bitwise_diffrax():
             pendulum.system(), (0.0, t1), q0, qd0, args, saveat=cjax.SaveAt(t1=True)
         ).q
 
+    def next_afters(patch: bool) -> int:
+        diffrax_patch(patch)
+        text = jax.jit(run).lower(jnp.asarray(1.0)).as_text()
+        assert _integrate.eqxi is eqxi  # diffrax is left as it was
+        return text.count("next_after")
+
     # (The unrolled calls before the loop are traced, unused, and dropped by `jit`.)
-    assert jax.jit(run).lower(jnp.asarray(1.0)).as_text().count("next_after") < 10
-    assert _integrate.eqxi is eqxi  # diffrax is left as it was
+    assert next_afters(True) < 10
+    assert next_afters(False) >= 100

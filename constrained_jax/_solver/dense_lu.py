@@ -15,8 +15,9 @@ import jax.lax as lax
 import jax.numpy as jnp
 import jax.scipy as jsp
 import lineax as lx
-import lineax.internal as lxi
 from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from .._compat import lineax_internal as lxi
 
 
 def _singular_threshold(a: Float[Array, "m m"]) -> Float[Array, ""]:

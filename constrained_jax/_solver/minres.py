@@ -9,8 +9,9 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import lineax as lx
-import lineax.internal as lxi
 from jaxtyping import Array, Float, PyTree
+
+from .._compat import lineax_internal as lxi
 
 
 class MINRES(lx.AbstractLinearSolver):
