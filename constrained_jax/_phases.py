@@ -48,7 +48,6 @@ from ._watch import Illinois, WatchedSolver
 from ._wrapped_solver import prepare_to_wrap
 
 
-
 def _gap_margin(q):
     """How far a free group's gap must fall below where its phase starts (or below
     zero) for a contact: `sqrt(eps) (1 + |q|)`, so that round-off and the integration

@@ -12,6 +12,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
+from ._compat import component_dense_info, runge_kutta_stages, stage_derivatives
 from ._wrapped_solver import AbstractForwardingSolver
 
 
@@ -174,27 +175,22 @@ class WatchedSolver(AbstractForwardingSolver):
     adaptive: bool = eqx.field(static=True)
     stages: Callable | None = None
 
-    def _tableau(self):
-        """The Butcher tableau whose stages carry the multiplier, or `None`."""
-        if self.stages is None or not isinstance(
-            self.solver, diffrax.AbstractRungeKutta
-        ):
-            return None
-        tableau = getattr(self.solver, "tableau", None)
-        return tableau if isinstance(tableau, diffrax.ButcherTableau) else None
+    def _stages(self):
+        """The Runge-Kutta stages that carry the multiplier, or `None`."""
+        return None if self.stages is None else runge_kutta_stages(self.solver)
 
     def init(self, terms, t0, t1, y0, args):
         w0 = self.start
-        if self._tableau() is None:
+        if self._stages() is None:
             return self.solver.init(terms, t0, t1, y0, args), w0
         stages = diffrax.ODETerm(self.stages)
         return self.solver.init(stages, t0, t1, (y0, w0), args), w0
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         inner_state, w0 = solver_state
-        tableau = self._tableau()
+        stages = self._stages()
         dtype = jnp.result_type(t0)
-        if tableau is None:
+        if stages is None:
             y1, y_error, dense_info, inner_state, result = self.solver.step(
                 terms, t0, t1, y0, args, inner_state, made_jump
             )
@@ -215,12 +211,11 @@ class WatchedSolver(AbstractForwardingSolver):
             # The dummy component is dropped: from the error (so that it does not
             # steer the step size) and from the dense output.
             y_error = None if y_error is None else y_error[0]
-            dense_info = {key: value[0] for key, value in dense.items()}
-            # The multiplier at the stages (diffrax keeps the stage increments,
-            # derivative times step).
-            ws = dense["k"][1] / (t1 - t0)
-            theta_stages = np.concatenate([[0.0], np.asarray(tableau.c)])
-            w1 = ws[-1] if tableau.fsal else self.watch(t1, y1, args)
+            dense_info = component_dense_info(dense, 0)
+            # The multiplier at the stages.
+            ws = stage_derivatives(dense, t0, t1)[1]
+            theta_stages = stages.times
+            w1 = ws[-1] if stages.fsal else self.watch(t1, y1, args)
             theta = gap_samples(theta_stages)
         if theta.size:
             interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
