@@ -305,22 +305,30 @@ def test_mixed_batch_under_vmap(name):
 
 
 @CASES
-@pytest.mark.parametrize("scale", [1e-300, 1e300])
-def test_extreme_scales(name, scale):
-    """`(s M, A, s f, b)` has the solution `(x, s lambda)` of `(M, A, f, b)`: with
-    masses of `1e-300` or `1e300` the inactive rows' entry `c` follows the Schur
-    complement, so no pivot is mistaken for zero nor for a breakdown (with `c = 1`
-    every mask here fails one way or the other)."""
+@pytest.mark.parametrize(
+    "mass_scale, jac_scale", [(1e-300, 1), (1e300, 1), (1, 1e-150), (1, 1e150)]
+)
+def test_extreme_scales(name, mass_scale, jac_scale):
+    """`(s M, t A, s f, t b)` has the solution `(x, s lambda / t)` of `(M, A, f, b)`:
+    with masses of `1e-300` or `1e300`, or a Jacobian of `1e-150` or `1e150`, the
+    inactive rows' entry `c` follows the units of the Schur complement (or of the
+    scaled KKT matrix), so no pivot is mistaken for zero nor for a breakdown (with
+    `c = 1` every solver fails here)."""
     case = _case(name)
     solve = _jitted(name)
     for active in _masks(case):
         x_ref, lam_ref, _ = _reference(case.mass, case.jac, case.rhs, case.bias, active)
-        jac, bias = _poisoned(case.jac, case.bias, active)
-        x, lam, singular = solve(scale * case.mass, jac, scale * case.rhs, bias, active)
+        jac, bias = _poisoned(jac_scale * case.jac, jac_scale * case.bias, active)
+        x, lam, singular = solve(
+            mass_scale * case.mass, jac, mass_scale * case.rhs, bias, active
+        )
         assert not singular, active
         np.testing.assert_allclose(x, x_ref, rtol=1e-9, atol=1e-12 * np.max(abs(x_ref)))
         np.testing.assert_allclose(
-            lam / scale, lam_ref, rtol=1e-9, atol=1e-12 * np.max(abs(lam_ref))
+            lam * jac_scale / mass_scale,
+            lam_ref,
+            rtol=1e-9,
+            atol=1e-12 * np.max(abs(lam_ref)),
         )
 
 
