@@ -66,11 +66,19 @@ class Automatic(AbstractSaddlePointSolver):
         if not self._diagonal_fast_path(system):
             return general.solve(system, fill)
 
-        def general_solve(mass, jac, rhs, bias):
-            return general.solve(SaddlePointSystem(mass, jac, rhs, bias), fill)
+        def general_solve(mass, jac, rhs, bias, active):
+            return general.solve(
+                SaddlePointSystem(mass, jac, rhs, bias, active=active), fill
+            )
 
         return diagonal_solve(
-            system.mass, system.jac, system.rhs, system.bias, general_solve, fill
+            system.mass,
+            system.jac,
+            system.rhs,
+            system.bias,
+            general_solve,
+            fill,
+            system.active,
         )
 
     def _diagonal_fast_path(self, system: SaddlePointSystem) -> bool:

@@ -24,7 +24,14 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array
 
-from .ldl import dot, max_abs, minus_sum, schur_solve_unrolled
+from .ldl import (
+    dot,
+    inactive_pivots,
+    mask_inactive_rows,
+    max_abs,
+    minus_sum,
+    schur_solve_unrolled,
+)
 
 
 def is_diagonal(mass) -> bool:
@@ -139,7 +146,9 @@ def _reciprocal_vector(mass, jac, n: int):
     return inv, index, small
 
 
-def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack, fill=0.0, recip=None):
+def diagonal_range_space(
+    mass, jac, rhs, bias, active=None, stack=jnp.stack, fill=0.0, recip=None
+):
     """The fast path, assuming `needs_general` is false: `(x, lambda, singular)`.
 
     `singular` flags a vanishing pivot of `A D^-1 A^T` (below `10 k eps` of its
@@ -148,7 +157,8 @@ def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack, fill=0.0, recip=
     then `fill` and `lambda` zero.
     `stack` assembles `x` and `lambda` from their entries (`stack_by_select` under
     `jax.vmap`). `recip`: `reciprocals(mass, jac, n)`, if computed already (`mass`
-    is then not read).
+    is then not read). `active`: the rows that hold (`None`: all), the others
+    solved as `lambda_j = 0` (see `AbstractSaddlePointSolver`), on the scalars.
     """
     n, k = rhs.shape[0], bias.shape[0]
     a = jac.entries()
@@ -166,13 +176,22 @@ def diagonal_range_space(mass, jac, rhs, bias, stack=jnp.stack, fill=0.0, recip=
         x = [zero if v is None else f[i] * v for i, v in enumerate(inv)]
         singular = inconsistent
     else:
+        b = None
+        if active is not None:
+            a, b = mask_inactive_rows(a, [bias[r] for r in range(k)], active)
         # D^-1 A^T, row by row of A.
         y = [[None if v is None else v * inv[i] for i, v in enumerate(r)] for r in a]
         schur = [[dot(y[r], a[s]) for s in range(k)] for r in range(k)]
+        if active is not None:
+            schur = inactive_pivots(schur, active, rhs.dtype)
         # Its non-finite solutions are reported below (one constraint: no pivot
         # test, see `schur_solve_unrolled`).
         lam, breakdown = schur_solve_unrolled(
-            schur, [minus_sum(-bias[r], [dot(y[r], f)]) for r in range(k)]
+            schur,
+            [
+                minus_sum(-(bias[r] if b is None else b[r]), [dot(y[r], f)])
+                for r in range(k)
+            ],
         )
         lam = [zero if v is None else v for v in lam]
         x = []
@@ -226,10 +245,11 @@ def _batch_last(args, in_batched):
     return moved, back
 
 
-def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
+def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0, active=None):
     """Solves the saddle-point system for a diagonal `SparseMatrix` `mass`: the fast
-    path where it applies, else `general(mass, jac, rhs, bias)` (which applies `fill`
-    itself), one `lax.cond` per call (per batch under `jax.vmap`).
+    path where it applies, else `general(mass, jac, rhs, bias, active)` (which
+    applies `fill` itself), one `lax.cond` per call (per batch under `jax.vmap`).
+    `active`: the rows that hold (`None`: all; see `AbstractSaddlePointSolver`).
 
     A `singular` solve has `x = fill`, set inside the branches, where XLA fuses it
     into the solve (a `where` on the `lax.cond`'s output would be a kernel more per
@@ -241,26 +261,28 @@ def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
     side; the tangent solves do the same (their right-hand side is projected before
     the solve, so that a cotangent on the gauge is not taken for a force on a
     massless coordinate), which makes the map `P S P` and its transpose `P S^T P`.
+    Inactive rows likewise: the solve ignores their right-hand side and returns
+    their multipliers zero, the operator has those rows of `A` masked.
     """
     n = rhs.shape[0]
     fast_path = functools.partial(diagonal_range_space, fill=fill)
     filled = fill != 0
 
-    def general_branch(mass, recip, jac, rhs, bias):
+    def general_branch(mass, recip, jac, rhs, bias, active):
         del recip
-        return general(*lax.optimization_barrier((mass, jac, rhs, bias)))
+        return general(*lax.optimization_barrier((mass, jac, rhs, bias, active)))
 
     @jax.custom_batching.custom_vmap
-    def core(mass, jac, rhs, bias):
+    def core(mass, jac, rhs, bias, active):
         values, index, small = _reciprocal_vector(mass, jac, n)
 
-        def fast_branch(mass, recip, jac, rhs, bias):
+        def fast_branch(mass, recip, jac, rhs, bias, active):
             del mass
-            jac, rhs, bias, (values, small) = lax.optimization_barrier(
-                (jac, rhs, bias, recip)
+            jac, rhs, bias, active, (values, small) = lax.optimization_barrier(
+                (jac, rhs, bias, active, recip)
             )
             inv = [None if p is None else values[p] for p in index]
-            return fast_path(None, jac, rhs, bias, recip=(inv, small))
+            return fast_path(None, jac, rhs, bias, active, recip=(inv, small))
 
         # The reciprocals of the masses before the `lax.cond`, where XLA hoists
         # those that depend on `args` only out of `simulate`'s loop (or folds them,
@@ -277,11 +299,12 @@ def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
             jac,
             rhs,
             bias,
+            active,
         )
 
     @core.def_vmap
-    def _(axis_size, in_batched, mass, jac, rhs, bias):
-        args = (mass, jac, rhs, bias)
+    def _(axis_size, in_batched, mass, jac, rhs, bias, active):
+        args = (mass, jac, rhs, bias, active)
         flags = _batched(
             lambda m, a: needs_general(m, a, n), axis_size, in_batched[:2], args[:2]
         )
@@ -300,14 +323,18 @@ def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
         return out, (True, True, True)
 
     @jax.custom_jvp
-    def solve(mass, jac, rhs, bias):
-        return core(mass, jac, rhs, bias)
+    def solve(mass, jac, rhs, bias, active):
+        return core(mass, jac, rhs, bias, active)
 
     @solve.defjvp
     def _(primals, tangents):
-        mass, jac, rhs, bias = primals
-        dmass, djac, drhs, dbias = tangents
-        x_out, lam, singular = solve(mass, jac, rhs, bias)
+        mass, jac, rhs, bias, active = primals
+        dmass, djac, drhs, dbias, _ = tangents
+        x_out, lam, singular = solve(mass, jac, rhs, bias, active)
+        if active is not None:
+            # The operator and its tangent without the inactive rows (the solves
+            # below ignore those rows' right-hand sides and zero their multipliers).
+            jac, djac = jac.mask_rows(active), djac.mask_rows(active)
         # The solution with zeros where singular (not `fill`), so that no NaN
         # enters the tangents (nor, transposed, the cotangents).
         x = jnp.where(singular, 0.0, x_out) if filled else x_out
@@ -339,12 +366,12 @@ def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
             return jnp.where(singular_, 0.0, x_) if filled else x_, lam_
 
         def kkt_solve(_, r):
-            dx, dlam = zeroed(*solve(mass, jac, project(r[:n]), -r[n:]))
+            dx, dlam = zeroed(*solve(mass, jac, project(r[:n]), -r[n:], active))
             return jnp.concatenate([dx, dlam])
 
         def kkt_transpose_solve(_, r):
             # K^T = [[M, A^T], [-A, 0]]: K^T w = r is K (w1, -w2) = (r1, -r2).
-            w1, w2 = zeroed(*solve(mass, jac, project(r[:n]), r[n:]))
+            w1, w2 = zeroed(*solve(mass, jac, project(r[:n]), r[n:], active))
             return jnp.concatenate([w1, -w2])
 
         dz = lax.custom_linear_solve(
@@ -354,4 +381,4 @@ def diagonal_solve(mass, jac, rhs, bias, general, fill=0.0):
         dsingular = np.zeros(np.shape(singular), jax.dtypes.float0)
         return (x_out, lam, singular), (dz[:n], dz[n:], dsingular)
 
-    return solve(mass, jac, rhs, bias)
+    return solve(mass, jac, rhs, bias, active)

@@ -55,6 +55,10 @@ class FullKKTLU(AbstractSaddlePointSolver):
         mass, jac = system.mass.todense(), system.jac.todense()
         rhs, bias = system.rhs, system.bias
         n, k = mass.shape[0], jac.shape[0]
+        active = system.active if k > 0 else None
+        if active is not None:
+            jac = jnp.where(active[:, None], jac, 0.0)
+            bias = jnp.where(active, bias, 0.0)
         if k == 0:
             matrix, vector = mass, rhs
             block_scale = None
@@ -65,8 +69,16 @@ class FullKKTLU(AbstractSaddlePointSolver):
             ratio = size_m / size_a
             usable = (size_m > 0) & (size_a > 0) & (ratio > 0) & jnp.isfinite(ratio)
             block_scale = jnp.where(usable, ratio, 1.0)
-            zeros = jnp.zeros((k, k), mass.dtype)
-            matrix = jnp.block([[mass / block_scale, -jac.T], [jac, zeros]])
+            corner = jnp.zeros((k, k), mass.dtype)
+            if active is not None:
+                # Inactive rows: `c (lambda_j / s) = 0`, `c` the largest entry of
+                # the scaled matrix (1 where it is zero), so that neither an active
+                # pivot nor an inactive one is taken for zero (see
+                # `AbstractSaddlePointSolver`).
+                largest = jnp.maximum(size_m / block_scale, size_a)
+                c = jnp.where(largest > 0, largest, 1.0)
+                corner = jnp.diag(jnp.where(active, 0.0, c))
+            matrix = jnp.block([[mass / block_scale, -jac.T], [jac, corner]])
             vector = jnp.concatenate([rhs / block_scale, -bias])
         m = n + k
         lu, perm, _ = dense_factor(matrix, self.unroll_max)

@@ -205,3 +205,44 @@ def add(value, term, factor=None):
     if value is None:
         return factor * term
     return value + factor * term
+
+
+def mask_inactive_rows(a: list[list], b: list, active) -> tuple[list[list], list]:
+    """`(a, b)` with the rows `r` where `active[r]` is false set to zero: `a` nested
+    lists of scalars (a `k x n` block, `None` a structural zero, kept) and `b` a
+    list of `k` scalars. One `where` per entry, so that whatever an inactive row
+    holds (NaN included) is dropped."""
+    flags = [active[r] for r in range(len(a))]
+    a = [
+        [None if v is None else jnp.where(flag, v, jnp.zeros_like(v)) for v in row]
+        for row, flag in zip(a, flags, strict=True)
+    ]
+    b = [
+        jnp.where(flag, v, jnp.zeros_like(v)) for v, flag in zip(b, flags, strict=True)
+    ]
+    return a, b
+
+
+def inactive_pivots(schur: list[list], active, dtype) -> list[list]:
+    """The Schur complement `S` of a range-space method (nested lists of scalars,
+    its inactive rows and columns already zero) with `c` on the diagonal of the
+    inactive rows: `S + C`, whose row `j` reads `c lambda_j = 0`.
+
+    `c` is the largest diagonal entry of `S` (1 where it is not positive: every row
+    inactive, or none coupled), in the units of `S`: a relative pivot test
+    (`10 k eps max|S|`) keeps its scale, takes no active pivot for zero and no
+    inactive one for a breakdown, whatever the units of the problem. `dtype`:
+    that of `S`."""
+    k = len(schur)
+    diagonal = [schur[r][r] for r in range(k) if schur[r][r] is not None]
+    one = jnp.ones((), dtype)
+    if diagonal:
+        largest = functools.reduce(jnp.maximum, diagonal)
+        c = jnp.where(largest > 0, largest, one)
+    else:
+        c = one
+    out = [list(row) for row in schur]
+    for r in range(k):
+        s = schur[r][r]
+        out[r][r] = jnp.where(active[r], jnp.zeros_like(c) if s is None else s, c)
+    return out

@@ -7,8 +7,10 @@ from .full_kkt_lu import FullKKTLU
 from .ldl import (
     add,
     dot,
+    inactive_pivots,
     ldl_factor_unrolled,
     ldl_solve_unrolled,
+    mask_inactive_rows,
     max_abs,
     minus_sum,
     schur_solve_unrolled,
@@ -81,6 +83,11 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
         a = system.jac.entries()
         f = [rhs[i] for i in range(n)]
         b = [bias[r] for r in range(k)]
+        active = system.active if k > 0 else None
+        if active is not None:
+            # Inactive rows: zero in `A` and `b`, and `c` on the Schur complement's
+            # diagonal (see `AbstractSaddlePointSolver`).
+            a, b = mask_inactive_rows(a, b, active)
         if k > 0:
             diag_m = [m[i][i] for i in range(n) if m[i][i] is not None]
             trace_m = (
@@ -127,6 +134,8 @@ class RangeSpaceLDL(AbstractSaddlePointSolver):
             y.append(y_r)
             singular = singular | inconsistent
         schur = [[dot(a[r], y[s]) for s in range(k)] for r in range(k)]
+        if active is not None:
+            schur = inactive_pivots(schur, active, rhs.dtype)
         lam, singular_s = schur_solve_unrolled(
             schur, [minus_sum(-b[r], [dot(a[r], u)]) for r in range(k)]
         )

@@ -61,6 +61,13 @@ class SaddlePointSystem(eqx.Module):
         program (or full); else the run-time check of the detected patterns, true
         when an entry outside them is nonzero at this state: the blocks are then
         wrong and [`constrained_jax._solver.saddle_point.solve`] refuses the system.
+    - `active`: `None` (every row holds), or per row of `A` whether it holds. An
+        inactive row `j` is replaced by `lambda_j = 0`: its entries of `A` and `b`
+        are ignored, whatever they hold (NaN included), and the solution is that of
+        the system without those rows, with zeros at their multipliers. The patterns
+        are unchanged (they include every row): `active` is a run-time value, so one
+        program serves every combination of rows (under `jax.vmap` it may differ
+        from one element of the batch to the next).
     """
 
     mass: SparseMatrix
@@ -68,14 +75,16 @@ class SaddlePointSystem(eqx.Module):
     rhs: Float[Array, " n"]
     bias: Float[Array, " k"]
     mismatch: Bool[Array, ""] | None = None
+    active: Bool[Array, " k"] | None = None
 
-    def __init__(self, mass, jac, rhs, bias, mismatch=None):
+    def __init__(self, mass, jac, rhs, bias, mismatch=None, active=None):
         # (Dense arrays are taken as blocks with the full pattern.)
         self.mass = mass if isinstance(mass, SparseMatrix) else SparseMatrix.dense(mass)
         self.jac = jac if isinstance(jac, SparseMatrix) else SparseMatrix.dense(jac)
         self.rhs = rhs
         self.bias = bias
         self.mismatch = mismatch
+        self.active = None if active is None else jnp.asarray(active, bool)
 
     @property
     def n(self) -> int:
@@ -109,6 +118,18 @@ class AbstractSaddlePointSolver(eqx.Module):
     inf in the inputs, or an overflow) is `singular`. The map from `(f, b)` to
     `(x, lambda)` must be linear at fixed `M`, `A` (flags decided from `M`, `A`
     only), as the implicit derivative linearises it.
+
+    **Inactive rows.** Where `system.active` is given, a row `j` with `active[j]`
+    false is solved as `lambda_j = 0` and its entries of `A` and `b` are ignored
+    (see [`constrained_jax.SaddlePointSystem`][]). A solver masks those entries to
+    zero (a `where`, so that NaN does not leak) and puts a positive entry `c` on the
+    `(2, 2)` block at those rows: the Schur complement becomes `A M^-1 A^T + C`,
+    whose row `j` is `c lambda_j = 0`. `c` is in the units of that block (the
+    largest diagonal entry of the Schur complement, or of the scaled KKT matrix, and
+    1 where it is zero), so that a relative pivot test (`10 k eps max|S|`) neither
+    takes an active row's pivot for zero (masses of `1e300`) nor an inactive row's
+    for a breakdown, and the scale of the test is unchanged. With `active=None`
+    nothing of this is traced.
 
     **Free gauge directions.** A direction `v` with `M v = 0` and `A v = 0` (no
     inertia, and free of the constraints: a massless coordinate that nothing couples
@@ -165,11 +186,16 @@ def solve(
     - **Refusal.** Where `system.mismatch` (a detected pattern missed an entry), the
         system is `singular`: `x = fill`, `lambda = 0`.
     - **Singular systems.** `x` is `fill` and `lambda` zero (the solver's contract).
+    - **Inactive rows** (`system.active`): solved as `lambda_j = 0`, their entries
+        of `A` and `b` ignored; the tangents are those of the system without them
+        (the rows of `dA` masked, `d lambda_j = 0`), and no cotangent reaches them.
 
     `system` must be in the solver's form (`solver.form(n, k)`).
     """
     mismatch = system.mismatch
-    system = SaddlePointSystem(system.mass, system.jac, system.rhs, system.bias)
+    system = SaddlePointSystem(
+        system.mass, system.jac, system.rhs, system.bias, active=system.active
+    )
     x, lam, singular = _solve(solver, fill, system)
     if mismatch is not None:
         x = jnp.where(mismatch, jnp.asarray(fill, x.dtype), x)
@@ -186,19 +212,23 @@ def _solve(solver, fill, system):
 @_solve.defjvp
 def _solve_jvp(solver, fill, primals, tangents):
     (system,), (d,) = primals, tangents
+    active = system.active
 
     def solution(rhs, bias):
         x, lam, singular = solver.solve(
-            SaddlePointSystem(system.mass, system.jac, rhs, bias), 0.0
+            SaddlePointSystem(system.mass, system.jac, rhs, bias, active=active), 0.0
         )
         return (x, lam), singular
 
     (x, lam), linear, singular = jax.linearize(
         solution, system.rhs, system.bias, has_aux=True
     )
-    # K dz = [df - dM x + dA^T lambda; -(db + dA x)]
-    tangent_rhs = d.rhs - d.mass.matvec(x) + d.jac.matvec(lam, transpose=True)
-    tangent_bias = d.bias + d.jac.matvec(x)
+    # K dz = [df - dM x + dA^T lambda; -(db + dA x)]. An inactive row's `dA` is
+    # dropped (`lambda_j = 0` would not cancel a NaN in it); its `db` the solve
+    # ignores.
+    djac = d.jac if active is None else d.jac.mask_rows(active)
+    tangent_rhs = d.rhs - d.mass.matvec(x) + djac.matvec(lam, transpose=True)
+    tangent_bias = d.bias + djac.matvec(x)
     dx, dlam = linear(tangent_rhs, tangent_bias)
     dx, dlam = (jnp.where(singular, 0.0, t) for t in (dx, dlam))
     d_singular = np.zeros(singular.shape, jax.dtypes.float0)

@@ -14,7 +14,7 @@ import operator
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 
 # Up to this many nonzeros, products are written on scalars with static indices: no
@@ -87,6 +87,16 @@ class SparseMatrix(eqx.Module):
         for p, (i, j) in enumerate(zip(self.rows, self.cols, strict=True)):
             out[i][j] = self.values[p]
         return out
+
+    def mask_rows(self, keep: Bool[Array, " m"]) -> "SparseMatrix":
+        """The same pattern with the rows `i` where `keep[i]` is false set to zero
+        (`where`, so that whatever they held, NaN included, is dropped)."""
+        if self.is_dense:
+            return SparseMatrix.dense(jnp.where(keep[:, None], self.values, 0.0))
+        if not self.rows:
+            return self
+        values = jnp.where(keep[np.asarray(self.rows)], self.values, 0.0)
+        return SparseMatrix(values, self.rows, self.cols, self.shape)
 
     def matvec(self, vector, transpose: bool = False) -> Array:
         """`self @ vector` (`self.T @ vector` if `transpose`), on the nonzeros only."""

@@ -588,6 +588,10 @@ class SparseSchur(AbstractSaddlePointSolver):
         dtype = jnp.result_type(mass.values, jac.values, rhs, bias)
         eps = jnp.finfo(dtype).eps
         m_values, a_values = mass.values, jac.values
+        active = system.active if k > 0 else None
+        if active is not None:
+            a_values = jnp.where(_take(active, plan.a_rows), a_values, 0.0)
+            bias = jnp.where(active, bias, 0.0)
         max_m = jnp.max(jnp.abs(m_values))
         minv, bad = _factor_mass(plan, m_values, 10 * n * eps * max_m)
         u = _apply_blocks(plan, minv, rhs)
@@ -600,6 +604,16 @@ class SparseSchur(AbstractSaddlePointSolver):
                 * _take(a_values, plan.s_a2),
                 plan.s_sum,
             )
+            if active is not None:
+                # Inactive rows: `c` on the diagonal of `S` (its first `k`
+                # entries), its largest entry (1 where zero), so that `c lambda_j
+                # = 0` (see `AbstractSaddlePointSolver`).
+                diagonal = s_values[:k]
+                largest = jnp.max(diagonal)
+                c = jnp.where(largest > 0, largest, 1.0)
+                s_values = jnp.concatenate(
+                    [jnp.where(active, diagonal, c), s_values[k:]]
+                )
             g = -bias - _spmv(a_values, plan.a_cols, u, plan.a_by_row)
             threshold = 10 * k * eps * jnp.max(jnp.abs(s_values))
             method = self.method
