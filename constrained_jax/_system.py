@@ -422,7 +422,7 @@ class LagrangianSystem(eqx.Module):
         if bias_correction is not None:
             bias = bias + bias_correction
         mismatch = _either(mismatch_m, mismatch_a)
-        return SaddlePointSystem(mass, jac, rhs, bias, mismatch, **_TMP(self.active))
+        return SaddlePointSystem(mass, jac, rhs, bias, mismatch, active=self.active)
 
     def _lagrangian_pass(self, q, qd, t, args, structure: Structure, unroll: bool):
         """`(M, Q - c, mismatch)`: `grad_q L` and `p = grad_qd L`, and the forward
@@ -625,7 +625,7 @@ def project(
             q_, qd, t, args, structure, form.unroll
         )
         kkt = SaddlePointSystem(
-            mass, jac, zeros, -target, mismatch_a, **_TMP(system.active)
+            mass, jac, zeros, -target, mismatch_a, active=system.active
         )
         x, lam, singular = solve_saddle_point(system.saddle_point_solver, kkt)
         flags.append(singular)
@@ -641,6 +641,3 @@ def project(
     singular = functools.reduce(jnp.logical_or, flags)
     return q, qd + jump, impulse, singular
 
-
-def _TMP(active):
-    return {} if active is None else {"active": active}
