@@ -76,6 +76,7 @@ from ._solver import (
     MINRES as MINRES,
     Newton as Newton,
     RangeSpaceLDL as RangeSpaceLDL,
+    SemismoothNewton as SemismoothNewton,
     SparseSchur as SparseSchur,
 )
 from ._stabilization import (
