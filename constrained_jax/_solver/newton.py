@@ -54,6 +54,10 @@ class Newton(AbstractKKTSolver):
     `Newton(linear_solver=constrained_jax.MINRES(rtol=1e-11, atol=0.0))`: each
     Krylov iteration is then one Hessian-vector product, and no matrix is formed.
 
+    With inequality constraints the KKT residual is only semismooth; `Newton` then
+    hands the solve to the [`constrained_jax.SemismoothNewton`][] of its `rtol`,
+    `atol`, `linear_solver` and `max_backtracks` (`complementarity_solver`).
+
     **Reference:** P. Deuflhard, *Newton Methods for Nonlinear Problems: Affine
     Invariance and Adaptive Algorithms*, Springer (2004), section 3.3 (NLEQ-ERR).
     """
