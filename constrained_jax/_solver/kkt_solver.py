@@ -6,7 +6,7 @@ the loop that runs one, `iterate` (as optimistix's `AbstractIterativeSolver` and
 import abc
 import functools as ft
 from collections.abc import Callable
-from typing import Any, TYPE_CHECKING
+from typing import Any
 
 import equinox as eqx
 import jax.lax as lax
@@ -16,10 +16,6 @@ import lineax as lx
 from jaxtyping import Array, Bool, Float, PyTree
 
 from .._results import RESULTS
-
-
-if TYPE_CHECKING:
-    from .semismooth_newton import SemismoothNewton
 
 
 _ResidualFn = Callable[[Float[Array, " m"], PyTree], Float[Array, " m"]]
@@ -66,7 +62,7 @@ class AbstractKKTSolver(eqx.Module):
     ) -> tuple[Float[Array, " m"], dict[str, Any]]:
         """The root returned, and the solver's own statistics."""
 
-    def complementarity_solver(self) -> "SemismoothNewton":
+    def complementarity_solver(self) -> "AbstractKKTSolver":
         """The solver that takes this one's place on a KKT system with
         complementarity rows (inequality constraints), whose residual is only
         semismooth.
