@@ -74,6 +74,7 @@ from ._solver import (
     Newton as Newton,
     RangeSpaceLDL as RangeSpaceLDL,
     SaddlePointSystem as SaddlePointSystem,
+    SemismoothNewton as SemismoothNewton,
     SparseSchur as SparseSchur,
 )
 from ._stabilization import (

@@ -3,8 +3,11 @@
 Extremize `F(x)` subject to `G_j(x) = 0` by freely extremizing
 `F*(x, lambda) = F(x) + sum_j lambda_j G_j(x)` over `x` and `lambda`: the `n + k`
 equations `grad F + sum_j lambda_j grad G_j = 0`, `G_j = 0`. With inequalities
-`H_i(x) <= 0` the KKT conditions gain multipliers `mu` and complementarity, solved
-in `constrained_jax._inequalities`.
+`H_i(x) <= 0` the KKT conditions gain multipliers `mu` and complementarity rows
+(`constrained_jax._inequalities`). Both are one `KKTProblem` solved by one
+`kkt_solve` (`constrained_jax._kkt`), in one jitted core: a prologue (argument
+checks, the flat problem, defaults, the start), the solve, and an epilogue (the
+second-order classification, the statuses).
 """
 
 import warnings
@@ -15,18 +18,24 @@ import jax
 import jax.flatten_util as jfu
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
 from ._implicit import nan_tangent_where
-from ._inequalities import inequality_solve, InequalityProblem
+from ._inequalities import (
+    check_concrete_bounds,
+    check_inequalities,
+    flat_bound,
+    flat_inequalities,
+)
 from ._kkt import (
     check_kkt_solver,
     constraint_jacobian,
     gram_factors,
-    kkt_residual,
     kkt_solve,
+    KKTProblem,
+    KKTSolution,
+    lagrangian_problem,
     least_squares_multipliers,
     reduced_hessian_extremes,
     tangent_projector,
@@ -34,20 +43,18 @@ from ._kkt import (
 from ._misc import all_finite, as_traced_args, full_precision, inexact_asarray
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
+from ._solver.kkt_solver import AbstractKKTSolver
 from ._solver.minres import MINRES
-from ._solver.newton import AbstractKKTSolver, Newton
+from ._solver.newton import Newton
+from ._solver.semismooth_newton import SemismoothNewton
 
 
-# The size `n + k` of the KKT system above which the default solver is matrix-free.
-# Measured on the maximum-entropy problem of `benchmarks/extremize.py` (3
-# constraints, 5 Newton steps; CPU time after compilation, medians of 5, one
-# process, 2-core CPU, float64): dense `DenseLU` / MINRES 2.3 / 17 ms at
-# n + k = 113, 12 / 12 ms at 133, 86 / 8 ms at 153, 0.88 s / 16 ms at 1,003,
-# 1.7 s / 44 ms at 2,003 (issue 12: 53 s and 6.4 GB against 70 ms at 10,003). The
-# crossover is near 130; the switch sits above it (at 256) because MINRES is
-# unpreconditioned and needs more iterations on worse-conditioned problems, where
-# dense LU does not. Results agree to round-off (x to 5e-15, multipliers to 2e-14,
-# the same kind) wherever both run.
+# The size `n + k` of the KKT system above which the default solver is matrix-free:
+# dense LU costs O((n + k)^3) time and O((n + k)^2) memory, MINRES one
+# Hessian-vector product per iteration. The switch sits above the crossover of the
+# two on a well-conditioned problem (`benchmarks/extremize.py` measures it), because
+# MINRES is unpreconditioned and needs more iterations on worse-conditioned
+# problems, where dense LU does not.
 DENSE_MAX = 256
 # An explicitly dense solver above this size is warned about (the KKT matrix alone
 # takes `8 (n + k)^2` bytes, 134 MB at 4,096, and XLA's scratch several times that).
@@ -55,7 +62,8 @@ DENSE_WARN = 4096
 
 
 def default_solver(n: int, k: int, dtype, dense_max: int = DENSE_MAX) -> Newton:
-    """The solver [`constrained_jax.extremize`][] uses when none is given.
+    """The solver [`constrained_jax.extremize`][] uses when none is given and there
+    are no inequalities (with them, `SemismoothNewton()`).
 
     `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the size
     `n + k` of the KKT system, known at trace time: [`constrained_jax.DenseLU`][]
@@ -73,8 +81,22 @@ def default_solver(n: int, k: int, dtype, dense_max: int = DENSE_MAX) -> Newton:
     return Newton(linear_solver=MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, n + k)))
 
 
-def _warn_if_dense_and_large(solver, n: int, k: int) -> None:
-    linear_solver = getattr(solver, "linear_solver", None)
+def _solver_or_default(solver, n: int, k: int, m: int, dtype) -> AbstractKKTSolver:
+    """`solver`, or the default; a warning where the size makes a dense solve slow."""
+    if m:
+        if n + k + m > DENSE_WARN:
+            size = n + k + m
+            warnings.warn(
+                f"`extremize` with inequalities forms the dense {size} x {size} "
+                f"Jacobian of the KKT system (n + k + m = {size}; bounds add n rows "
+                "each) and factors it at every step, in O((n + k + m)^3) time: expect "
+                "it to be slow. There is no matrix-free inequality solver yet.",
+                stacklevel=2,
+            )
+        return SemismoothNewton() if solver is None else solver
+    if solver is None:
+        return default_solver(n, k, dtype)
+    linear_solver = solver.linear_solver
     if isinstance(linear_solver, DenseLU) and n + k > DENSE_WARN:
         size = n + k
         warnings.warn(
@@ -86,6 +108,7 @@ def _warn_if_dense_and_large(solver, n: int, k: int) -> None:
             "atol=0.0))`.",
             stacklevel=2,
         )
+    return solver
 
 
 class EXTREMUM(eqx.Enumeration):
@@ -331,10 +354,12 @@ def extremize(
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][], or `None` (default):
         `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the size
         `n + k` of the KKT system: [`constrained_jax.DenseLU`][] up to 256 unknowns,
-        matrix-free [`constrained_jax.MINRES`][] above (measured: equal cost near
-        130 unknowns on a well-conditioned problem; dense takes 53 s and 6.4 GB at
-        n = 10,000 where MINRES takes 70 ms). An explicitly dense solver above
-        4,096 unknowns is warned about.
+        matrix-free [`constrained_jax.MINRES`][] above (`benchmarks/extremize.py`
+        measures both). An explicitly dense solver above 4,096 unknowns is warned
+        about. With inequalities the default is
+        [`constrained_jax.SemismoothNewton`][]`()`, and a solver given is replaced
+        by its `complementarity_solver()` (a `Newton` by the `SemismoothNewton` of
+        its tolerances and linear solver).
     - `multipliers0`: a starting guess for `lambda`; by default the least-squares
         multipliers at `x0`, `-(J J^T)^{-1} J grad F`.
     - `max_steps`: the most Newton steps.
@@ -381,9 +406,10 @@ def extremize(
     Jacobian by forward-mode autodiff, LU-factored), damped by the natural monotonicity
     test of [`constrained_jax.Newton`][], with a Levenberg-Marquardt step and an Armijo
     line search on `|r|^2 / 2` where the Newton step fails, from any start, feasible or
-    not (with `mu0 = 0`). `solver` must be `None` or a [`constrained_jax.Newton`][]: its
-    `rtol`, `atol` give the stopping test (as for equalities), its `linear_solver` the
-    backward pass. After the iteration the KKT conditions are checked, relative to
+    not (with `mu0 = 0`): [`constrained_jax.SemismoothNewton`][]. `solver` is `None`,
+    a `SemismoothNewton` or a [`constrained_jax.Newton`][]: its `rtol`, `atol` give
+    the stopping test (as for equalities), its `linear_solver` the backward pass.
+    After the iteration the KKT conditions are checked, relative to
     `max(1, |mu|)` for `mu`, `max(1, |x|) |grad H_i|` for `H_i`, `max(1, |grad F|)` for
     stationarity and `max(1, |x|)` for `G`, to `tol = sqrt(max(rtol, atol, 100 eps))`
     (`sol.stats["kkt_tolerance"]`, `1e-5` by default; the violation found is
@@ -436,13 +462,8 @@ def extremize(
         )
     lower = None if lower is None else jtu.tree_map(jnp.asarray, lower)
     upper = None if upper is None else jtu.tree_map(jnp.asarray, upper)
-    _check_concrete_bounds(lower, upper)
-    if not with_inequalities:
-        sol = _extremize(
-            objective, x0, args, constraints, solver, multipliers0, max_steps, sense
-        )
-        return raise_if_failed(sol, throw)
-    sol = _extremize_inequalities(
+    check_concrete_bounds(lower, upper)
+    sol = _extremize(
         objective,
         x0,
         args,
@@ -456,29 +477,6 @@ def extremize(
         max_steps,
     )
     return raise_if_failed(sol, throw)
-
-
-def _check_concrete_bounds(lower, upper) -> None:
-    """`lower > upper` anywhere, when both are known outside any trace: ValueError.
-    (Traced bounds that cross give `RESULTS.infeasible_inequalities`.)"""
-    if lower is None or upper is None:
-        return
-    lo_leaves, up_leaves = jtu.tree_leaves(lower), jtu.tree_leaves(upper)
-    if any(isinstance(v, jax.core.Tracer) for v in lo_leaves + up_leaves):
-        return
-    if len(lo_leaves) != len(up_leaves):
-        return  # The shape check inside says what is wrong.
-    for lo, up in zip(lo_leaves, up_leaves, strict=True):
-        try:
-            crossed = np.any(np.asarray(lo) > np.asarray(up))
-        except ValueError:
-            return  # Shapes that do not broadcast: reported inside.
-        if crossed:
-            raise ValueError(
-                "`lower > upper` for some entries: no x satisfies the bounds. Check "
-                "the bounds (an entry with no bound is `-inf` in `lower` or `inf` in "
-                "`upper`)."
-            )
 
 
 def _check_callables(objective, constraints, x0):
@@ -498,11 +496,31 @@ def _check_callables(objective, constraints, x0):
 
 @eqx.filter_jit
 def _extremize(
-    objective, x0, args, constraints, solver, multipliers0, max_steps, sense
+    objective,
+    x0,
+    args,
+    constraints,
+    inequalities,
+    lower,
+    upper,
+    sense,
+    solver,
+    multipliers0,
+    max_steps,
 ):
+    # Prologue: argument checks, the flat problem, defaults, the start.
+    with_inequalities = not (inequalities is None and lower is None and upper is None)
+    if with_inequalities and not isinstance(solver, (AbstractKKTSolver, type(None))):
+        raise ValueError(
+            "With inequalities `extremize` runs a semismooth Newton method on a dense "
+            "Jacobian: pass `solver=None`, `cjax.SemismoothNewton(rtol=..., atol=..., "
+            "linear_solver=...)` or a `cjax.Newton` (whose tolerances and linear "
+            f"solver it takes), got {type(solver).__name__}."
+        )
     check_kkt_solver(Newton() if solver is None else solver, max_steps)
     _check_callables(objective, constraints, x0)
     x_flat, unravel = jfu.ravel_pytree(x0)
+    dtype = x_flat.dtype
     objective_flat = lambda x, a: objective(unravel(x), a)
     constraints_flat = (
         None if constraints is None else _flat_constraints(constraints, unravel)
@@ -510,95 +528,52 @@ def _extremize(
     n, k = _check_structure(
         objective_flat, constraints_flat, x_flat, args, multipliers0
     )
-    dtype = x_flat.dtype
-    if solver is None:
-        solver = default_solver(n, k, dtype)
-    else:
-        _warn_if_dense_and_large(solver, n, k)
-
-    start_ok = all_finite((x_flat, args, multipliers0))
+    m, inequalities_flat = 0, None
+    if with_inequalities:
+        m_user = check_inequalities(inequalities, x_flat, unravel, args)
+        lower = flat_bound(lower, x0, "lower", dtype)
+        upper = flat_bound(upper, x0, "upper", dtype)
+        m = m_user + (0 if lower is None else n) + (0 if upper is None else n)
+        inequalities_flat = flat_inequalities(
+            inequalities, unravel, m_user, lower, upper
+        )
+    solver = _solver_or_default(solver, n, k, m, dtype)
+    # The bounds travel with `args` so that they are differentiated like it.
+    aug = (args, lower, upper)
+    problem = lagrangian_problem(
+        lambda x, a: objective_flat(x, a[0]),
+        None if constraints_flat is None else lambda x, a: constraints_flat(x, a[0]),
+        inequalities_flat,
+        x_flat,
+        aug,
+        sign=1.0 if sense == "minimize" else -1.0,
+    )
+    start_ok = all_finite((x_flat, args, multipliers0)) & _bounds_ok(lower, upper)
     x_safe = jnp.where(start_ok, x_flat, 0.0)
-    if k == 0:
-        f0 = objective_flat(x_safe, args)
-        lam0 = jnp.zeros((0,), dtype)
-    else:
-        g0, jac0 = _value_and_jacobian(constraints_flat, x_safe, args)
-        if multipliers0 is None:
-            f0, grad0 = jax.value_and_grad(objective_flat)(x_safe, args)
-            lam0 = least_squares_multipliers(grad0, jac0, gram_factors(jac0))
-        else:
-            f0 = objective_flat(x_safe, args)
-            lam0 = jnp.asarray(multipliers0, dtype)
+    f0, lam0, g0, jac0 = _start(
+        objective_flat, constraints_flat, x_safe, args, multipliers0, m
+    )
     # F(x0) itself (Newton uses only its derivatives, whose finiteness the first
     # step checks): NaN there means x0 is outside the domain of F.
     start_defined = jnp.isfinite(f0)
-    z, result, stats, residual = kkt_solve(
-        objective_flat,
-        constraints_flat,
-        x_flat,
-        lam0,
-        args,
-        solver,
-        max_steps,
-        start_ok & start_defined,
-    )
+
+    z0 = jnp.concatenate([x_flat, lam0, jnp.zeros((m,), dtype)])
+    sol = kkt_solve(problem, solver, z0, aug, max_steps, start_ok & start_defined)
+
+    # Epilogue: the statuses, the second-order classification, the outputs.
     result = RESULTS.where(
-        start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, result
+        start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, sol.result
     )
-
-    # Diagnostics: nondifferentiable.
-    zs = jax.lax.stop_gradient(z)
-    xs, lams = zs[:n], zs[n:]
-    if k == 0:
-        project = lambda v: v
-    else:
-        jac = constraint_jacobian(constraints_flat, xs, args)
-        factors = gram_factors(jac)
-        project = tangent_projector(jac, factors)
-
-    def grad_star(x_):
-        """grad_x F*(x, lambda) at fixed lambda: the first n KKT residuals."""
-        z_ = jnp.concatenate([x_, lams])
-        return kkt_residual(objective_flat, constraints_flat, z_, args, n)[:n]
-
-    hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
-    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
-    kind = _classify(extremes, n, k, dtype)
-
-    if k > 0:
-        # A failure caused by the constraints (see the notes of `Extremum`).
-        distance, inconsistent = _constraint_distance(residual[n:], jac)
-        distance0, _ = _constraint_distance(g0, jac0)
-        scale = jnp.maximum(
-            jnp.maximum(jnp.linalg.norm(xs), jnp.linalg.norm(x_flat)),
-            jnp.linalg.norm(xs - x_flat),
+    if m:
+        result = _complementarity_statuses(result, sol)
+    xs = jax.lax.stop_gradient(sol.z)[:n]
+    kind, extremes, jac, factors = _second_order(
+        problem, sol, constraints_flat, args, aug, dtype
+    )
+    if k and not m:
+        result = _constraint_statuses(
+            result, kind, sol.residual[n:], jac, factors, g0, jac0, xs, x_flat
         )
-        singular = result == RESULTS.singular_kkt
-        nondegenerate = (
-            (kind == EXTREMUM.minimum)
-            | (kind == EXTREMUM.maximum)
-            | (kind == EXTREMUM.saddle)
-            | (kind == EXTREMUM.isolated)
-        )
-        jacobian_to_blame = factors[2] | (singular & nondegenerate)
-        # The surface receded while Newton moved towards a rank-deficient J.
-        receded = (distance > 0.1 * scale) & (distance > distance0)
-        result = RESULTS.where(
-            jacobian_to_blame & (singular | (result == RESULTS.successful)),
-            RESULTS.where(
-                inconsistent | receded,
-                RESULTS.infeasible_constraints,
-                RESULTS.redundant_constraints,
-            ),
-            result,
-        )
-        result = RESULTS.where(
-            (result == RESULTS.line_search_failed)
-            & (inconsistent | (distance > scale)),
-            RESULTS.infeasible_constraints,
-            result,
-        )
-
     value = objective_flat(xs, args)
     result = RESULTS.where(
         (result == RESULTS.successful) & jnp.invert(jnp.isfinite(value)),
@@ -608,25 +583,155 @@ def _extremize(
     result = _check_sense(result, kind, sense, jnp.array(False))
     failed = result != RESULTS.successful
     kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
-
     # The derivative of a failed solve is NaN (also for failures decided above, after
     # the implicit function theorem).
-    z = nan_tangent_where(z, failed)
-    x, lam = z[:n], z[n:]
-    value = objective_flat(x, args)
-
-    stats = {**stats, "reduced_hessian_eigenvalues": extremes}
-    sol = Extremum(
+    x, lam, mu = problem.split(nan_tangent_where(sol.z, failed))
+    # Inactive: mu_i = 0 exactly (the iteration leaves round-off there; its
+    # derivative is zero by the rewrite anyway).
+    mu = mu * sol.active.astype(dtype)
+    return Extremum(
         x=unravel(x),
         multipliers=lam,
-        value=value,
+        value=objective_flat(x, args),
         kind=kind,
         result=result,
-        stats=stats,
-        inequality_multipliers=jnp.zeros((0,), dtype),
-        active=jnp.zeros((0,), bool),
+        stats={**sol.stats, "reduced_hessian_eigenvalues": extremes},
+        inequality_multipliers=mu,
+        active=sol.active,
     )
-    return sol
+
+
+def _bounds_ok(lower, upper) -> Bool[Array, ""]:
+    """No NaN in the bounds, and no `lower = inf` or `upper = -inf`."""
+    ok = jnp.array(True)
+    if lower is not None:
+        ok = ok & jnp.all(jnp.invert(jnp.isnan(lower)) & (lower < jnp.inf))
+    if upper is not None:
+        ok = ok & jnp.all(jnp.invert(jnp.isnan(upper)) & (upper > -jnp.inf))
+    return ok
+
+
+def _start(objective, constraints, x, args, multipliers0, m: int):
+    """`(F(x), lambda0, G(x), J(x))` at the start `x` (`G`, `J` are `None` without
+    constraints): `lambda0` is `multipliers0`, by default the least-squares
+    multipliers `-(J J^T)^{-1} J grad F`. With inequalities a non-finite default
+    (dependent constraints at `x`) is replaced by zero: the semismooth iteration
+    starts from anywhere."""
+    if constraints is None:
+        return objective(x, args), jnp.zeros((0,), x.dtype), None, None
+    g, jac = _value_and_jacobian(constraints, x, args)
+    if multipliers0 is not None:
+        return objective(x, args), jnp.asarray(multipliers0, x.dtype), g, jac
+    f, grad = jax.value_and_grad(objective)(x, args)
+    lam = least_squares_multipliers(grad, jac, gram_factors(jac))
+    if m:
+        lam = jnp.where(jnp.all(jnp.isfinite(lam)), lam, 0.0)
+    return f, lam, g, jac
+
+
+def _complementarity_statuses(result: RESULTS, sol: KKTSolution) -> RESULTS:
+    """A stop anywhere `H > 0` is infeasibility, whatever the iteration said; a
+    "converged" point where the KKT conditions fail is never a success."""
+    tol = sol.stats["kkt_tolerance"]
+    infeasible = sol.infeasibility > tol
+    result = RESULTS.where(
+        (result != RESULTS.successful)
+        & (result != RESULTS.invalid_input)
+        & (result != RESULTS.nonfinite_objective)
+        & infeasible,
+        RESULTS.infeasible_inequalities,
+        result,
+    )
+    return RESULTS.where(
+        (result == RESULTS.successful) & (sol.stats["kkt_violation"] > tol),
+        RESULTS.where(
+            infeasible,
+            RESULTS.infeasible_inequalities,
+            RESULTS.kkt_conditions_violated,
+        ),
+        result,
+    )
+
+
+def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug, dtype):
+    """`(kind, extremes, J, factors of J J^T)`: the extreme eigenvalues of the Hessian
+    of `F*` on the tangent space of `G` (and, with inequalities, of the strictly
+    active `H`), and the `EXTREMUM` they make (see the notes of `Extremum`)."""
+    n, k, m = problem.n, problem.k, problem.m
+    zs = jax.lax.stop_gradient(sol.z)
+    xs = zs[:n]
+    jac = factors = None
+    if m:
+        # The rows of G and the strictly active H, normalised; the tangent space is
+        # the eigenspace of their Gram matrix at zero.
+        rows = jax.jacrev(problem.inequalities)(xs, aug)
+        rows = rows * sol.strict[:, None].astype(dtype)
+        if k > 0:
+            rows = jnp.concatenate([constraint_jacobian(constraints, xs, args), rows])
+        norms = jnp.linalg.norm(rows, axis=1, keepdims=True)
+        rows = rows / jnp.where(norms > 0, norms, 1.0)
+        eigs, vecs = jnp.linalg.eigh(rows.T @ rows)
+        eps = jnp.finfo(dtype).eps
+        free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
+        project = lambda v: vecs @ (free.astype(dtype) * (vecs.T @ v))
+    elif k:
+        jac = constraint_jacobian(constraints, xs, args)
+        factors = gram_factors(jac)
+        project = tangent_projector(jac, factors)
+    else:
+        project = lambda v: v
+
+    def grad_star(x_):
+        """grad_x F*(x, lambda, mu) at fixed multipliers: the first n equations."""
+        return problem.equations(jnp.concatenate([x_, zs[n:]]), aug)[:n]
+
+    hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
+    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
+    kind = _classify(extremes, n, k, dtype)
+    if m:
+        kind = EXTREMUM.where(jnp.sum(free) == 0, EXTREMUM.isolated, kind)
+        # Weakly active inequalities (H_i = 0 with mu_i = 0): the critical cone is
+        # smaller than the subspace tested, so only a definite answer is conclusive.
+        weakly = jnp.any(sol.active & jnp.invert(sol.strict))
+        kind = EXTREMUM.where(
+            weakly & (kind == EXTREMUM.saddle), EXTREMUM.degenerate, kind
+        )
+    return kind, extremes, jac, factors
+
+
+def _constraint_statuses(result, kind, g, jac, factors, g0, jac0, xs, x0):
+    """A failure caused by the equality constraints, decided from `G`, `J` where the
+    solve stopped and at the start (see the notes of `Extremum`)."""
+    distance, inconsistent = _constraint_distance(g, jac)
+    distance0, _ = _constraint_distance(g0, jac0)
+    scale = jnp.maximum(
+        jnp.maximum(jnp.linalg.norm(xs), jnp.linalg.norm(x0)),
+        jnp.linalg.norm(xs - x0),
+    )
+    singular = result == RESULTS.singular_kkt
+    nondegenerate = (
+        (kind == EXTREMUM.minimum)
+        | (kind == EXTREMUM.maximum)
+        | (kind == EXTREMUM.saddle)
+        | (kind == EXTREMUM.isolated)
+    )
+    jacobian_to_blame = factors[2] | (singular & nondegenerate)
+    # The surface receded while Newton moved towards a rank-deficient J.
+    receded = (distance > 0.1 * scale) & (distance > distance0)
+    result = RESULTS.where(
+        jacobian_to_blame & (singular | (result == RESULTS.successful)),
+        RESULTS.where(
+            inconsistent | receded,
+            RESULTS.infeasible_constraints,
+            RESULTS.redundant_constraints,
+        ),
+        result,
+    )
+    return RESULTS.where(
+        (result == RESULTS.line_search_failed) & (inconsistent | (distance > scale)),
+        RESULTS.infeasible_constraints,
+        result,
+    )
 
 
 def _classify(extremes: Float[Array, "2"], n: int, k: int, dtype) -> EXTREMUM:
@@ -662,264 +767,3 @@ def _check_sense(result, kind, sense, inconclusive):
         RESULTS.not_an_optimum,
         result,
     )
-
-
-def _flat_bound(bound, x0, name: str, dtype):
-    """`lower` or `upper` as a flat array matching `ravel_pytree(x0)`: a scalar or an
-    array broadcast to every leaf, or a pytree with the structure of `x0` whose
-    leaves broadcast to its leaves."""
-    if bound is None:
-        return None
-    x_leaves, x_def = jtu.tree_flatten(x0)
-    b_leaves, b_def = jtu.tree_flatten(bound)
-    if b_def == x_def:
-        pairs = list(zip(b_leaves, x_leaves, strict=True))
-    elif len(b_leaves) == 1 and (len(x_leaves) == 1 or jnp.ndim(b_leaves[0]) == 0):
-        pairs = [(b_leaves[0], leaf) for leaf in x_leaves]
-    else:
-        raise ValueError(
-            f"`{name}` must be a scalar, an array that broadcasts to `x0`, or a pytree "
-            f"with the structure of `x0` ({x_def}), got {b_def}."
-        )
-    flat = []
-    for b, leaf in pairs:
-        b = jnp.asarray(b)
-        if not (jnp.issubdtype(b.dtype, jnp.number) and not jnp.iscomplexobj(b)):
-            raise ValueError(f"`{name}` must hold real numbers, got dtype {b.dtype}.")
-        try:
-            shape = np.broadcast_shapes(b.shape, leaf.shape)
-        except ValueError:
-            shape = None
-        if shape != leaf.shape:
-            raise ValueError(
-                f"`{name}` has shape {b.shape}, which does not broadcast to the shape "
-                f"{leaf.shape} of `x0`: pass a scalar or an array of shape "
-                f"{leaf.shape} (an entry with no bound is `-inf` in `lower`, `inf` in "
-                "`upper`)."
-            )
-        flat.append(jnp.broadcast_to(b.astype(dtype), leaf.shape).ravel())
-    return jnp.concatenate(flat)
-
-
-def _flat_inequalities(inequalities, unravel, m_user, lower, upper):
-    """`H(x, (args, lower, upper))` on flat `x`: the user's rows, then `lower - x`,
-    then `x - upper`; an infinite bound gives the row `-1` (never active)."""
-
-    def h(x, aug):
-        args, lo, up = aug
-        rows = []
-        if m_user:
-            rows.append(jnp.atleast_1d(inequalities(unravel(x), args)))
-        if lower is not None:
-            rows.append(jnp.where(jnp.isfinite(lo), lo - x, -1.0))
-        if upper is not None:
-            rows.append(jnp.where(jnp.isfinite(up), x - up, -1.0))
-        return jnp.concatenate(rows)
-
-    return h
-
-
-def _check_inequalities(inequalities, x_flat, unravel, args):
-    """The number of the user's inequalities, checked like `G`."""
-    if inequalities is None:
-        return 0
-    h_struct = jax.eval_shape(lambda x: inequalities(unravel(x), args), x_flat)
-    if not isinstance(h_struct, jax.ShapeDtypeStruct) or h_struct.ndim > 1:
-        shape = getattr(h_struct, "shape", type(h_struct).__name__)
-        raise ValueError(
-            "The inequalities H(x, args) must return an array of shape (m,) (or a "
-            f"scalar for a single inequality H <= 0), but returned {shape}. Stack "
-            "them into one vector, e.g. `jnp.stack([h1, h2])` or `h.ravel()`."
-        )
-    if not jnp.issubdtype(h_struct.dtype, jnp.floating):
-        raise ValueError(
-            f"The inequalities H(x, args) must be floating point, got {h_struct.dtype}."
-        )
-    m = 1 if h_struct.ndim == 0 else h_struct.shape[0]
-    if m == 0:
-        raise ValueError(
-            "The inequalities returned an empty array: pass `inequalities=None`."
-        )
-    return m
-
-
-@eqx.filter_jit
-def _extremize_inequalities(
-    objective,
-    x0,
-    args,
-    constraints,
-    inequalities,
-    lower,
-    upper,
-    sense,
-    solver,
-    multipliers0,
-    max_steps,
-):
-    if solver is None:
-        solver = Newton()
-    if not isinstance(solver, Newton):
-        raise ValueError(
-            "With inequalities `extremize` runs a semismooth Newton method on a dense "
-            "Jacobian: pass `solver=None` or `cjax.Newton(rtol=..., atol=..., "
-            f"linear_solver=...)`, got {type(solver).__name__}."
-        )
-    check_kkt_solver(solver, max_steps)
-    _check_callables(objective, constraints, x0)
-    x_flat, unravel = jfu.ravel_pytree(x0)
-    dtype = x_flat.dtype
-    objective_flat = lambda x, a: objective(unravel(x), a)
-    constraints_flat = (
-        None if constraints is None else _flat_constraints(constraints, unravel)
-    )
-    n, k = _check_structure(
-        objective_flat, constraints_flat, x_flat, args, multipliers0
-    )
-    m_user = _check_inequalities(inequalities, x_flat, unravel, args)
-    lower = _flat_bound(lower, x0, "lower", dtype)
-    upper = _flat_bound(upper, x0, "upper", dtype)
-    m = m_user + (0 if lower is None else n) + (0 if upper is None else n)
-    ineq_flat = _flat_inequalities(inequalities, unravel, m_user, lower, upper)
-    if n + k + m > DENSE_WARN:
-        size = n + k + m
-        warnings.warn(
-            f"`extremize` with inequalities forms the dense {size} x {size} Jacobian "
-            f"of the KKT system (n + k + m = {size}; bounds add n rows each) and "
-            "factors it at every step, in O((n + k + m)^3) time: expect it to be "
-            "slow. There is no matrix-free inequality solver yet.",
-            stacklevel=2,
-        )
-    sign = 1.0 if sense == "minimize" else -1.0
-
-    # The bounds travel with `args` so that they are differentiated like it.
-    aug = (args, lower, upper)
-    objective_aug = lambda x, a: objective_flat(x, a[0])
-    constraints_aug = (
-        None if constraints_flat is None else lambda x, a: constraints_flat(x, a[0])
-    )
-    objective_aug = eqx.filter_closure_convert(objective_aug, x_flat, aug)
-    if constraints_aug is not None:
-        constraints_aug = eqx.filter_closure_convert(constraints_aug, x_flat, aug)
-    ineq_aug = eqx.filter_closure_convert(ineq_flat, x_flat, aug)
-    problem = InequalityProblem(objective_aug, constraints_aug, ineq_aug, n, k, m, sign)
-
-    bounds_ok = jnp.array(True)
-    if lower is not None:
-        bounds_ok = bounds_ok & jnp.all(
-            jnp.invert(jnp.isnan(lower)) & (lower < jnp.inf)
-        )
-    if upper is not None:
-        bounds_ok = bounds_ok & jnp.all(
-            jnp.invert(jnp.isnan(upper)) & (upper > -jnp.inf)
-        )
-    start_ok = all_finite((x_flat, args, multipliers0)) & bounds_ok
-    x_safe = jnp.where(start_ok, x_flat, 0.0)
-    f0, grad0 = jax.value_and_grad(objective_flat)(x_safe, args)
-    if k == 0:
-        lam0 = jnp.zeros((0,), dtype)
-    elif multipliers0 is None:
-        jac0 = constraint_jacobian(constraints_flat, x_safe, args)
-        lam0 = least_squares_multipliers(grad0, jac0, gram_factors(jac0))
-        lam0 = jnp.where(jnp.all(jnp.isfinite(lam0)), lam0, 0.0)
-    else:
-        lam0 = jnp.asarray(multipliers0, dtype)
-    start_defined = jnp.isfinite(f0)
-    z0 = jnp.concatenate([x_safe, lam0, jnp.zeros((m,), dtype)])
-    z, result, aux = inequality_solve(
-        problem,
-        z0,
-        aug,
-        solver.rtol,
-        solver.atol,
-        solver.linear_solver,
-        max_steps,
-        start_ok & start_defined,
-    )
-    result = RESULTS.where(
-        start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, result
-    )
-    tol = aux["tolerance"]
-    infeasible = aux["infeasible"] > tol
-    # A stop anywhere H > 0 is infeasibility, whatever the iteration said; a
-    # "converged" point where the KKT conditions fail is never a success.
-    result = RESULTS.where(
-        (result != RESULTS.successful)
-        & (result != RESULTS.invalid_input)
-        & (result != RESULTS.nonfinite_objective)
-        & infeasible,
-        RESULTS.infeasible_inequalities,
-        result,
-    )
-    result = RESULTS.where(
-        (result == RESULTS.successful) & (aux["violation"] > tol),
-        RESULTS.where(
-            infeasible,
-            RESULTS.infeasible_inequalities,
-            RESULTS.kkt_conditions_violated,
-        ),
-        result,
-    )
-
-    # Second order, on the tangent space of G and the strictly active H.
-    zs = jax.lax.stop_gradient(z)
-    xs = zs[:n]
-    strict, active = aux["strict"], aux["active"]
-    rows = jax.jacrev(ineq_aug)(xs, aug) * strict[:, None].astype(dtype)
-    if k > 0:
-        rows = jnp.concatenate([constraint_jacobian(constraints_flat, xs, args), rows])
-    norms = jnp.linalg.norm(rows, axis=1, keepdims=True)
-    rows = rows / jnp.where(norms > 0, norms, 1.0)
-    eigs, vecs = jnp.linalg.eigh(rows.T @ rows)
-    eps = jnp.finfo(dtype).eps
-    free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
-    project = lambda v: vecs @ (free.astype(dtype) * (vecs.T @ v))
-    isolated = jnp.sum(free) == 0
-
-    def grad_star(x_):
-        z_ = jnp.concatenate([x_, zs[n:]])
-        return problem.stationarity(z_, aug)[0]
-
-    hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
-    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
-    kind = EXTREMUM.where(isolated, EXTREMUM.isolated, _classify(extremes, n, k, dtype))
-    # Weakly active inequalities (H_i = 0 with mu_i = 0): the critical cone is
-    # smaller than the subspace tested, so only a definite answer is conclusive.
-    weakly = jnp.any(active & jnp.invert(strict))
-    kind = EXTREMUM.where(weakly & (kind == EXTREMUM.saddle), EXTREMUM.degenerate, kind)
-    result = _check_sense(result, kind, sense, jnp.array(False))
-
-    value = objective_flat(xs, args)
-    result = RESULTS.where(
-        (result == RESULTS.successful) & jnp.invert(jnp.isfinite(value)),
-        RESULTS.nonfinite_objective,
-        result,
-    )
-    failed = result != RESULTS.successful
-    kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
-    z = nan_tangent_where(z, failed)
-    x, lam, mu = z[:n], z[n : n + k], z[n + k :]
-    # Inactive: mu_i = 0 exactly (the iteration leaves round-off there; its
-    # derivative is zero by `_rewrite` anyway).
-    mu = mu * active.astype(dtype)
-    value = objective_flat(x, args)
-    residual = problem.residual(zs, aug)
-    stats = {
-        "num_steps": aux["num_steps"],
-        "max_steps": max_steps,
-        "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
-        "kkt_violation": aux["violation"],
-        "kkt_tolerance": tol,
-        "reduced_hessian_eigenvalues": extremes,
-    }
-    sol = Extremum(
-        x=unravel(x),
-        multipliers=lam,
-        value=value,
-        kind=kind,
-        result=result,
-        stats=stats,
-        inequality_multipliers=mu,
-        active=active,
-    )
-    return sol

@@ -33,7 +33,13 @@ from jaxtyping import Array, ArrayLike, Float
 from ._custom_types import Args, Scalar
 from ._discretization import AbstractDiscretization, Chebyshev
 from ._implicit import nan_tangent_where
-from ._kkt import check_kkt_solver, gram_factors, kkt_solve, least_squares_multipliers
+from ._kkt import (
+    check_kkt_solver,
+    gram_factors,
+    kkt_solve,
+    lagrangian_problem,
+    least_squares_multipliers,
+)
 from ._misc import (
     all_finite,
     as_traced_args,
@@ -41,7 +47,8 @@ from ._misc import (
     full_precision,
 )
 from ._results import raise_if_failed, RESULTS
-from ._solver.newton import AbstractKKTSolver, Newton
+from ._solver.kkt_solver import AbstractKKTSolver
+from ._solver.newton import Newton
 
 
 LagrangianFn = Callable[[Any, Any, Scalar, Args], Scalar]
@@ -1035,17 +1042,17 @@ def _solve_functional(
         )
     else:
         continuation = None
-    z, result, stats, _ = kkt_solve(
-        _objective,
-        constraints,
-        x_safe,
-        lam0,
-        full_args,
+    kkt_problem = lagrangian_problem(_objective, constraints, None, x_safe, full_args)
+    sol = kkt_solve(
+        kkt_problem,
         solver,
+        jnp.concatenate([x_safe, lam0]),
+        full_args,
         max_steps,
         start_ok & boundary_ok,
-        continuation,
+        strategy=continuation,
     )
+    z, result, stats = sol.z, sol.result, sol.stats
     if check_line and not default_start:
         # The degeneracy check costs about as much as the solve of a small problem, so
         # from a given start it runs only where it can matter: a degenerate problem has

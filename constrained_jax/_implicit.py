@@ -20,8 +20,9 @@ Successful solves get exactly the derivative optimistix would give:
 
 This adapter is the library's only copy of optimistix's private `implicit_jvp`
 (`optimistix/_ad.py`, reached as `optimistix.internal`, which has no stability
-promise): every solve differentiates through it, `constrained_jax._kkt.kkt_solve`
-(extremize, solve_functional) and the Newton solves of the variational integrator.
+promise). Every constrained solve differentiates through it, and only from one
+place: `constrained_jax._kkt.kkt_solve` (extremize with and without inequalities,
+solve_functional, the Newton solves of the variational integrator).
 """
 
 from collections.abc import Callable

@@ -1,21 +1,30 @@
-"""Saddle-point (KKT) machinery shared by every pillar of the library.
+"""The constrained solve shared by every nonlinear solve of the library.
 
-Every problem here reduces to finding a root `z = (x, lambda)` of a KKT residual whose
-Jacobian is the symmetric saddle-point matrix
+Every such problem is a root `z = (x, lambda, mu)` of KKT conditions: `n` unknowns
+`x`, `k` equality multipliers `lambda`, `m` inequality multipliers `mu`,
 
-    K = [[H, J^T],
-         [J, 0  ]],
+    e(z, args) = 0                                    (n + k equations)
+    s mu_i >= 0,  H_i(x, args) <= 0,  mu_i H_i = 0    (m complementarity rows)
 
-with `H` the Hessian of the Lagrangian `F* = F + lambda . G` and `J = dG/dx`. This
-module holds
+(`s = +1` to minimize, `-1` to maximize). For a Lagrangian `F* = F + lambda . G +
+mu . H` the equations are its stationarity, `(grad F + J^T lambda + A^T mu, G)`,
+whose Jacobian (`m = 0`) is the symmetric saddle-point matrix
 
+    K = [[Hess F*, J^T],
+         [J,       0  ]],
+
+`J = dG/dx`, `A = dH/dx`; `m = 0` is the equality-constrained case. This module holds
+
+- `KKTProblem`: those conditions as a value (the equations, `H`, the layout `n, k, m`,
+  the sign `s`); `lagrangian_problem` builds one from `F`, `G`, `H`;
+- `kkt_solve`: the one constrained solve (an `AbstractKKTSolver` run to convergence
+  by `iterate`, the complementarity check, derivatives by the implicit function
+  theorem, the final residual), used by [`constrained_jax.extremize`][],
+  [`constrained_jax.solve_functional`][] and the variational integrator;
 - `kkt_residual`: `(grad F + J^T lambda, G)` by one reverse-mode pass;
 - `constraint_jacobian`, `tangent_projector`: the constraint geometry;
 - `reduced_hessian_extremes`: the Hessian of `F*` restricted to the tangent space of
-  the constraints, by Lanczos, which decides minimum / maximum / saddle;
-- `kkt_solve`: the one constrained solve (start check, an `AbstractKKTSolver` from
-  `_solver/newton.py` run to convergence, derivatives by the implicit function
-  theorem, the final residual) that every pillar calls.
+  the constraints, by Lanczos, which decides minimum / maximum / saddle.
 """
 
 from collections.abc import Callable
@@ -29,10 +38,11 @@ import lineax as lx
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._implicit import implicit_jvp
+from ._inequalities import complementarity_check, fischer_burmeister
 from ._misc import check_max_steps
 from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve
-from ._solver.newton import AbstractKKTSolver, iterate
+from ._solver.kkt_solver import AbstractKKTSolver, iterate
 
 
 # ---------------------------------------------------------------------------------
@@ -156,8 +166,156 @@ def reduced_hessian_extremes(
 
 
 # ---------------------------------------------------------------------------------
+# The problem
+# ---------------------------------------------------------------------------------
+
+
+class _Stationarity(eqx.Module):
+    """`e(z, args) = (grad F + J^T lambda + A^T mu, G)`, the stationarity of
+    `F* = F + lambda . G + mu . H` in `(x, lambda)`, by one reverse-mode pass."""
+
+    objective: Callable
+    constraints: Callable | None
+    inequalities: Callable | None
+    n: int = eqx.field(static=True)
+    k: int = eqx.field(static=True)
+
+    def __call__(self, z, args):
+        if self.inequalities is None:
+            return kkt_residual(self.objective, self.constraints, z, args, self.n)
+        n, k = self.n, self.k
+        x, lam, mu = z[:n], z[n : n + k], z[n + k :]
+
+        def values(x_):
+            f = self.objective(x_, args)
+            if self.constraints is None:
+                g = jnp.zeros((0,), x_.dtype)
+            else:
+                g = self.constraints(x_, args)
+            return f, g, self.inequalities(x_, args)
+
+        (f, g, _), vjp = jax.vjp(values, x)
+        (grad_star,) = vjp((jnp.ones_like(f), lam, mu))
+        return jnp.concatenate([grad_star, g])
+
+
+class KKTProblem(eqx.Module):
+    """The KKT conditions of a constrained solve, as a value.
+
+    The unknowns are `z = (x, lambda, mu)`, of sizes `n`, `k`, `m`; the conditions are
+
+        equations(z, args) = 0                                      (n + k rows)
+        s mu_i >= 0,  -inequalities(x, args)_i >= 0,  mu_i H_i = 0   (m rows)
+
+    with `s = sign`. `m = 0` is the smooth (equality) case, whose residual is the
+    equations themselves; otherwise the complementarity rows are written with the
+    Fischer-Burmeister function, `phi(s mu, -H) = 0`, which vanishes exactly where
+    they hold (`constrained_jax._inequalities`). `symmetric` says whether the
+    Jacobian of the equations is symmetric (a KKT matrix) or not (the variational
+    integrator's steps), which the implicit derivative passes to the linear solver.
+    """
+
+    equations: Callable
+    inequalities: Callable | None
+    n: int = eqx.field(static=True)
+    k: int = eqx.field(static=True)
+    m: int = eqx.field(static=True, default=0)
+    sign: float = eqx.field(static=True, default=1.0)
+    symmetric: bool = eqx.field(static=True, default=True)
+
+    def split(self, z):
+        """`(x, lambda, mu)`."""
+        n, k = self.n, self.k
+        return z[:n], z[n : n + k], z[n + k :]
+
+    def residual(self, z, args):
+        """The residual whose root the solver finds: the equations, then
+        `phi(s mu, -H)` for the complementarity rows."""
+        if not self.m:
+            return self.equations(z, args)
+        x, _, mu = self.split(z)
+        h = self.inequalities(x, args)
+        return jnp.concatenate(
+            [self.equations(z, args), fischer_burmeister(self.sign * mu, -h)]
+        )
+
+    def rewrite(self, z, strict, args):
+        """The equations the implicit function theorem differentiates: the equations,
+        with the strictly active inequalities (`strict`) as equalities `H_i = 0` and
+        the others as `mu_i = 0`. For a Lagrangian their Jacobian is symmetric,
+
+            [[Hess_x F*, J^T, A_S^T, 0],
+             [J,         0,   0,     0],
+             [A_S,       0,   0,     0],
+             [0,         0,   0,     I]]
+
+        (`A_S` the strictly active rows of `dH/dx`), so the solver's own (symmetric,
+        possibly matrix-free) `linear_solver` solves the tangent system."""
+        if not self.m:
+            return self.equations(z, args)
+        weight = strict.astype(z.dtype)
+        x, lam, mu = self.split(z)
+        e = self.equations(jnp.concatenate([x, lam, mu * weight]), args)
+        h = self.inequalities(x, args)
+        # A blend, not `jnp.where`: reverse mode then carries the NaN cotangents of a
+        # failed solve into every input (`where` would send them a zero).
+        return jnp.concatenate([e, weight * h + (1 - weight) * mu])
+
+
+def lagrangian_problem(
+    objective: Callable,
+    constraints: Callable | None,
+    inequalities: Callable | None,
+    x0: Float[Array, " n"],
+    args: PyTree,
+    sign: float = 1.0,
+) -> KKTProblem:
+    """The `KKTProblem` of extremizing `F(x, args)` subject to `G(x, args) = 0` and
+    `H(x, args) <= 0` (`G`, `H` may be `None`), on flat `x` shaped like `x0`.
+
+    The functions are closure-converted here, so they may close over traced arrays,
+    which are then differentiated like `args`."""
+    n = x0.shape[0]
+    objective = eqx.filter_closure_convert(objective, x0, args)
+    k = m = 0
+    if constraints is not None:
+        constraints = eqx.filter_closure_convert(constraints, x0, args)
+        k = eqx.filter_eval_shape(constraints, x0, args).shape[0]
+    if inequalities is not None:
+        inequalities = eqx.filter_closure_convert(inequalities, x0, args)
+        m = eqx.filter_eval_shape(inequalities, x0, args).shape[0]
+    equations = _Stationarity(objective, constraints, inequalities, n, k)
+    return KKTProblem(equations, inequalities, n, k, m, sign)
+
+
+# ---------------------------------------------------------------------------------
 # The constrained solve
 # ---------------------------------------------------------------------------------
+
+
+class KKTSolution(eqx.Module):
+    """The result of `kkt_solve`.
+
+    - `z`: the root `(x, lambda, mu)`, with derivatives by the implicit function
+        theorem (NaN where the solve failed, see `constrained_jax._implicit`).
+    - `result`: the status of the iteration (not yet judged by the caller's
+        diagnostics).
+    - `residual`: the residual at `z` (not differentiated).
+    - `stats`: `num_steps`, `max_steps`, `kkt_residual` (root mean square of
+        `residual`), the solver's own; with complementarity rows also
+        `kkt_violation` (the largest relative violation of the KKT conditions) and
+        `kkt_tolerance` (the tolerance it is judged by).
+    - `active`, `strict`: where `H_i = 0`, and where also `mu_i != 0` (shape `(m,)`).
+    - `infeasibility`: the largest relative `H_i > 0` (zero without inequalities).
+    """
+
+    z: Float[Array, " N"]
+    result: RESULTS
+    residual: Float[Array, " N"]
+    stats: dict[str, Any]
+    active: Bool[Array, " m"]
+    strict: Bool[Array, " m"]
+    infeasibility: Float[Array, ""]
 
 
 def check_kkt_solver(solver: AbstractKKTSolver, max_steps: int) -> None:
@@ -171,80 +329,93 @@ def check_kkt_solver(solver: AbstractKKTSolver, max_steps: int) -> None:
 
 
 def _primal(inputs):
-    objective, constraints, solver, z0, args, n, max_steps, start_ok, strategy = inputs
-    residual = lambda z, a: kkt_residual(objective, constraints, z, a, n)
-    solve = lambda res, z_start, ok: iterate(solver, res, z_start, args, max_steps, ok)
+    problem, solver, z0, args, max_steps, start_ok, strategy, unrolled, tol = inputs
+
+    def solve(residual, z_start, ok):
+        return iterate(solver, residual, z_start, args, max_steps, ok, unrolled)
+
     if strategy is None:
-        z, result, stats = solve(residual, z0, start_ok)
+        z, result, stats = solve(problem.residual, z0, start_ok)
     else:
-        z, result, stats = strategy(solve, residual, z0, args, start_ok)
+        z, result, stats = strategy(solve, problem.residual, z0, args, start_ok)
+    if problem.m:
+        check = complementarity_check(problem, z, args, tol)
+        stats = {**stats, **check}
     return z, (result, stats)
 
 
 def _rewrite(z, aux, inputs):
-    del aux
-    objective, constraints, _, _, args, n, _, _, _ = inputs
-    return kkt_residual(objective, constraints, z, args, n)
+    problem, args = inputs[0], inputs[3]
+    _, stats = aux
+    return problem.rewrite(z, stats.get("strict"), args)
 
 
 def kkt_solve(
-    objective: Callable,
-    constraints: Callable | None,
-    x0: Float[Array, " n"],
-    lam0: Float[Array, " k"],
-    args: PyTree,
+    problem: KKTProblem,
     solver: AbstractKKTSolver,
+    z0: Float[Array, " N"],
+    args: PyTree,
     max_steps: int,
     start_ok: Bool[Array, ""],
+    *,
     strategy: Callable | None = None,
-) -> tuple[Float[Array, " n+k"], RESULTS, dict[str, Any], Float[Array, " n+k"]]:
-    """The constrained solve shared by [`constrained_jax.extremize`][] and
-    [`constrained_jax.solve_functional`][]: a root `z = (x, lambda)` of the KKT
-    residual of `F* = F + lambda . G`, differentiable by the implicit function theorem.
+    unrolled: int = 0,
+) -> KKTSolution:
+    """A root of the KKT conditions of `problem`, differentiable by the implicit
+    function theorem: the constrained solve of [`constrained_jax.extremize`][],
+    [`constrained_jax.solve_functional`][] and the variational integrator.
 
     **Arguments:**
 
-    - `objective`, `constraints`: `F(x, args)`, `G(x, args)` on flat `x` (`G` may be
-        `None`); closure-converted here, so they may close over traced arrays.
-    - `x0`, `lam0`: the start; not differentiated. Where not `start_ok` it is returned
-        as it is.
+    - `problem`: the [`KKTProblem`][]; arrays it closes over (closure-converted) are
+        differentiated like `args`.
+    - `solver`: an `AbstractKKTSolver`. With complementarity rows (`problem.m > 0`)
+        its `complementarity_solver()` runs instead, a
+        [`constrained_jax.SemismoothNewton`][] whose `rtol`, `atol` also set the
+        tolerance of the check of the KKT conditions, `sqrt(max(rtol, atol,
+        100 eps))`.
+    - `z0`: the start `(x0, lambda0, mu0)`; not differentiated. Where not `start_ok`
+        it is returned as it is.
     - `args`: the parameters, differentiated through the implicit function theorem.
-    - `solver`, `max_steps`: run by `constrained_jax._solver.newton.iterate`.
+    - `max_steps`: the most steps of `constrained_jax._solver.kkt_solver.iterate`.
     - `start_ok`: false when the start is not usable (no step is taken, the status is
         `RESULTS.invalid_input`).
     - `strategy`: `None`, or a pytree callable `strategy(solve, residual, z0, args,
         start_ok) -> (z, result, stats)` that drives the solve (e.g. continuation),
         with `solve(residual, z_start, start_ok)` one run of the solver.
+    - `unrolled`: steps of the iteration written as straight-line code before its
+        loop (see `iterate`).
 
-    **Returns:** `(z, result, stats, residual)`: the root, with derivatives (NaN where
-    the solve failed, see `constrained_jax._implicit`); its status; `num_steps`,
-    `max_steps` and `kkt_residual` (root mean square); the KKT residual at `z`
-    (not differentiated).
+    **Returns:** a `KKTSolution`.
     """
-    n = x0.shape[0]
-    objective = eqx.filter_closure_convert(objective, x0, args)
-    if constraints is not None:
-        constraints = eqx.filter_closure_convert(constraints, x0, args)
-    z0 = lax.stop_gradient(jnp.concatenate([x0, lam0]))
-    inputs = (
-        objective,
-        constraints,
-        solver,
-        z0,
-        args,
-        n,
-        max_steps,
-        start_ok,
-        strategy,
-    )
-    tags = frozenset({lx.symmetric_tag})
+    dtype = z0.dtype
+    if problem.m:
+        solver = solver.complementarity_solver()
+        floor = 100 * float(jnp.finfo(dtype).eps)
+        rtol = jnp.asarray(solver.rtol, dtype)
+        tol = jnp.sqrt(jnp.maximum(jnp.maximum(rtol, solver.atol), floor)).astype(dtype)
+    else:
+        tol = None
+    z0 = lax.stop_gradient(z0)
+    inputs = (problem, solver, z0, args, max_steps, start_ok, strategy, unrolled, tol)
+    tags = frozenset({lx.symmetric_tag}) if problem.symmetric else frozenset()
     z, (result, stats) = implicit_jvp(
         _primal, _rewrite, inputs, tags, solver.linear_solver
     )
-    residual = kkt_residual(objective, constraints, lax.stop_gradient(z), args, n)
+    residual = problem.residual(lax.stop_gradient(z), args)
+    stats = dict(stats)
+    if problem.m:
+        active = stats.pop("active")
+        strict = stats.pop("strict")
+        infeasibility = stats.pop("infeasibility")
+        stats["kkt_violation"] = stats.pop("violation")
+        stats["kkt_tolerance"] = tol
+    else:
+        active = strict = jnp.zeros((0,), bool)
+        infeasibility = jnp.zeros((), dtype)
     stats = {
         **stats,
         "max_steps": max_steps,
         "kkt_residual": jnp.sqrt(jnp.mean(jnp.square(residual))),
     }
-    return z, result, stats, residual
+    return KKTSolution(z, result, residual, stats, active, strict, infeasibility)

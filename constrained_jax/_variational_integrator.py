@@ -79,7 +79,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._compat import buffer_at_set, while_loop
 from ._constraints import Holonomic
-from ._implicit import implicit_jvp, nan_derivatives_if_failed
+from ._implicit import nan_derivatives_if_failed
+from ._kkt import kkt_solve, KKTProblem
 from ._misc import (
     all_finite,
     check_max_steps,
@@ -90,7 +91,7 @@ from ._misc import (
 )
 from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
-from ._solver.newton import AbstractKKTSolver, iterate
+from ._solver.kkt_solver import AbstractKKTSolver
 from ._system import LagrangianSystem, off_constraints
 
 
@@ -203,30 +204,17 @@ class _NewtonChord(AbstractKKTSolver):
         return z, {}
 
 
-def _root_primal(inputs):
-    fn, params, z0, solver, max_iter = inputs
-    true = jnp.array(True)
-    z, result, stats = iterate(solver, fn, z0, params, max_iter, true, unrolled=1)
-    return z, (result, stats)
-
-
-def _root_rewrite(z, aux, inputs):
-    del aux
-    fn, params, _, _, _ = inputs
-    return fn(z, params)
-
-
 def _root(fn, params, z0, *, rtol, atol, max_iter):
     """The root `z` of `fn(z, params)` by `_NewtonChord` from `z0`, differentiable in
-    `params` by the implicit function theorem (`constrained_jax._implicit`):
-    `dz = -(dF/dz)^{-1} (dF/dparams . dparams)`. The initial guess `z0` does not
-    affect the root. Returns `(z, converged, iterations)`."""
+    `params` by the implicit function theorem (`constrained_jax._kkt.kkt_solve`):
+    `dz = -(dF/dz)^{-1} (dF/dparams . dparams)`. The system is square and
+    unsymmetric, without complementarity rows; the initial guess `z0` does not affect
+    the root. Returns `(z, converged, iterations)`."""
+    problem = KKTProblem(fn, None, n=z0.shape[0], k=0, symmetric=False)
     solver = _NewtonChord(rtol=rtol, atol=atol)
-    inputs = (fn, params, z0, solver, max_iter)
-    z, (result, stats) = implicit_jvp(
-        _root_primal, _root_rewrite, inputs, frozenset(), solver.linear_solver
-    )
-    return z, result == RESULTS.successful, stats["num_steps"]
+    true = jnp.array(True)
+    sol = kkt_solve(problem, solver, z0, params, max_iter, true, unrolled=1)
+    return sol.z, sol.result == RESULTS.successful, sol.stats["num_steps"]
 
 
 # ---------------------------------------------------------------- the two stages

@@ -117,3 +117,20 @@ def test_the_measurement_pattern_has_teeth():
         assert _MEASURED.search(measured), measured
     for rule in ("`3 s + k` products", "`4 s^2 / (3a)`", "1e-8 in float64", "n = 64"):
         assert not _MEASURED.search(rule), rule
+
+
+def test_one_implicit_derivative_wrapper():
+    """Every constrained nonlinear solve (`extremize`, `solve_functional`, the
+    variational integrator's steps) goes through `kkt_solve`, the one caller of the
+    implicit derivative; and every saddle-point solve of mechanics through
+    `_solver/saddle_point.solve`, the one `custom_jvp` of it."""
+    calls = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.name == "_implicit.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", "") == (
+                "implicit_jvp"
+            ):
+                calls.append(path.relative_to(PACKAGE).as_posix())
+    assert calls == ["_kkt.py"], calls

@@ -24,7 +24,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._extremize import extremize, Extremum
-from .._solver.newton import AbstractKKTSolver, Newton
+from .._solver.kkt_solver import AbstractKKTSolver
+from .._solver.newton import Newton
 
 
 def volume(x: Float[Array, "2"], args: dict) -> Float[Array, ""]:

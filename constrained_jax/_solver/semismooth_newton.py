@@ -1,0 +1,272 @@
+"""[`constrained_jax.SemismoothNewton`][]: Newton's method on a KKT residual with
+complementarity rows (inequality constraints), which is only semismooth."""
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import jax.scipy as jsp
+import lineax as lx
+from jaxtyping import Array, Bool
+
+from .._results import RESULTS
+from .dense_lu import DenseLU
+from .kkt_solver import AbstractKKTSolver
+
+
+def _conjugate_gradient(matrix, shift, rhs):
+    """Solve `(matrix + shift I) d = rhs` (symmetric positive definite) by conjugate
+    gradients from `d = 0`, at most `len(rhs)` steps, to a relative residual of
+    `sqrt(eps)`.
+
+    Used for the Levenberg-Marquardt direction instead of a second factorisation:
+    two batched LAPACK factorisations in one loop body can deadlock XLA's CPU
+    runtime under `jax.vmap` (every thread of its intra-op pool idle). Every
+    conjugate-gradient iterate of an SPD system started at zero is a descent
+    direction of its quadratic model, `rhs . d > 0`, so with `rhs = -grad Psi` the
+    direction descends `Psi` however early the iteration stops.
+    """
+    size = rhs.shape[0]
+    tol = jnp.sqrt(jnp.finfo(rhs.dtype).eps) * jnp.linalg.norm(rhs)
+
+    def apply(v):
+        return matrix @ v + shift * v
+
+    def cond(c):
+        _, r, _, rr, it = c
+        return (it < size) & (jnp.sqrt(rr) > tol)
+
+    def body(c):
+        d, r, p, rr, it = c
+        ap = apply(p)
+        pap = jnp.dot(p, ap)
+        alpha = rr / jnp.where(pap > 0, pap, 1.0)
+        alpha = jnp.where(pap > 0, alpha, 0.0)
+        d = d + alpha * p
+        r = r - alpha * ap
+        rr_new = jnp.dot(r, r)
+        beta = rr_new / jnp.where(rr > 0, rr, 1.0)
+        p = r + beta * p
+        # A non-positive curvature (round-off) ends the iteration where it is.
+        it = jnp.where(pap > 0, it + 1, size)
+        return d, r, p, rr_new, it
+
+    zero = jnp.zeros_like(rhs)
+    rr0 = jnp.dot(rhs, rhs)
+    d, *_ = lax.while_loop(cond, body, (zero, rhs, rhs, rr0, 0))
+    return d
+
+
+class _State(eqx.Module):
+    done: Bool[Array, ""]
+    result: RESULTS
+
+
+class SemismoothNewton(AbstractKKTSolver):
+    """Semismooth Newton on a KKT residual with complementarity rows, globalised by
+    the natural monotonicity test and a Levenberg-Marquardt fallback.
+
+    [`constrained_jax.extremize`][] writes the KKT conditions of inequality
+    constraints `H(x) <= 0` as a square system through the Fischer-Burmeister
+    function, which is not differentiable where `mu_i = H_i = 0`: Newton's method
+    then takes an element of the (B-)subdifferential as its Jacobian (Qi and Sun
+    1993). Each step forms that Jacobian `K` by forward-mode autodiff and
+    LU-factors it (dense: for small and medium problems). The Newton step
+    `dz = -K^-1 r` is damped by Deuflhard's natural monotonicity test, as in
+    [`constrained_jax.Newton`][]: the simplified correction at the trial point must
+    shrink, `|K^-1 r(z + a dz)| <= (1 - a/4) |dz|` in the scaled norm
+    `rms(v / (atol + rtol |z|))`. That test is affine invariant, so it comes first: a
+    line search on `|r|` alone can stall at a local minimum of the residual
+    (Rosenbrock's function in a disk from (-1.2, 1)). Where `K` is singular
+    (degenerate vertices, dependent active constraints) or the test fails, a
+    Levenberg-Marquardt step with an Armijo line search on the merit
+    `Psi = |W r|^2 / 2` is taken instead (`W` scales each row by the reciprocal of its
+    row of `K`, so that complementarity is not drowned by large multipliers); `Psi`
+    is continuously differentiable for this residual and the step descends it
+    whenever `grad Psi != 0` (De Luca, Facchinei and Kanzow 1996).
+
+    Converged when a full Newton step is within tolerance (scaled norm below 1); the
+    step is then taken. Tolerances below `100 eps` of the dtype are raised to it.
+    A step that cannot be taken stops the iteration with `RESULTS.line_search_failed`
+    (or `RESULTS.nonfinite_objective` where the residual or `K` is NaN or inf).
+
+    [`constrained_jax.Newton`][] hands inequality-constrained solves to the
+    `SemismoothNewton` of its own `rtol`, `atol`, `linear_solver` and
+    `max_backtracks` (see `complementarity_solver`), so either may be passed. On a
+    KKT system without inequalities this is a dense Newton method with a
+    Levenberg-Marquardt fallback.
+
+    **References:** L. Qi and J. Sun, *A nonsmooth version of Newton's method*,
+    Math. Programming 58 (1993) 353-367; T. De Luca, F. Facchinei and C. Kanzow, *A
+    semismooth equation approach to the solution of nonlinear complementarity
+    problems*, Math. Programming 75 (1996) 407-439; P. Deuflhard, *Newton Methods
+    for Nonlinear Problems*, Springer (2004), section 3.3.
+    """
+
+    rtol: float = 1e-10
+    atol: float = 1e-10
+    linear_solver: lx.AbstractLinearSolver = DenseLU()
+    max_backtracks: int = 40
+
+    def __check_init__(self):
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if isinstance(value, (int, float)) and not value >= 0:
+                raise ValueError(
+                    f"`SemismoothNewton({name}=...)` must be non-negative."
+                )
+        if (
+            isinstance(self.rtol, (int, float))
+            and isinstance(self.atol, (int, float))
+            and self.rtol == 0
+            and self.atol == 0
+        ):
+            raise ValueError("`SemismoothNewton` needs a positive `rtol` or `atol`.")
+
+    def init(self, residual, z, args):
+        del residual, args
+        return _State(done=jnp.array(False), result=RESULTS.successful)
+
+    def step(self, residual, z, args, state):
+        dtype = z.dtype
+        eps = jnp.finfo(dtype).eps
+        floor = 100 * eps
+        rtol = jnp.maximum(jnp.asarray(self.rtol, dtype), floor)
+        atol = jnp.maximum(jnp.asarray(self.atol, dtype), floor)
+        res = lambda z_: residual(z_, args)
+        r = res(z)
+        jac = jax.jacfwd(res)(z)
+        finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(jac))
+        # The merit function of the fallback weighs each row of `r` by the
+        # reciprocal of its row of the Jacobian (max-norm): stationarity (in the
+        # units of grad F) and complementarity (in the units of H) would otherwise
+        # differ by as many orders of magnitude as the multipliers are large, and
+        # Levenberg-Marquardt would ignore the complementarity rows. (The Newton
+        # step is invariant to this scaling.)
+        row_size = jnp.max(jnp.abs(jnp.where(finite, jac, 0.0)), axis=1)
+        weight = 1 / jnp.where(row_size > 0, row_size, 1.0)
+        psi = 0.5 * jnp.dot(weight * r, weight * r)
+        grad_psi = jac.T @ (weight**2 * r)
+        one = jnp.ones((), dtype)
+
+        # The Newton direction, if the Jacobian is (numerically) invertible; the
+        # same factorisation gives the simplified Newton corrections.
+        factors = jsp.linalg.lu_factor(jnp.where(finite, jac, 0.0))
+        newton_solve = lambda rhs: jsp.linalg.lu_solve(factors, rhs)
+        dz_newton = newton_solve(-r)
+        check = jnp.linalg.norm(jac @ dz_newton + r)
+        newton_ok = (
+            finite
+            & jnp.all(jnp.isfinite(dz_newton))
+            & (check <= 1e-6 * jnp.linalg.norm(r) + jnp.finfo(dtype).tiny)
+        )
+        dz_newton = jnp.where(newton_ok, dz_newton, 0.0)
+        scale = atol + rtol * jnp.abs(z)
+        norm = lambda v: jnp.sqrt(jnp.mean(jnp.square(v / scale)))
+        step_norm = norm(dz_newton)
+        converged = (psi == 0) | (newton_ok & (step_norm < 1))
+
+        # Deuflhard's natural monotonicity test on the Newton direction, as in
+        # `Newton`: the simplified correction at the trial point must shrink.
+        def contraction(alpha):
+            simplified = newton_solve(-res(z + alpha * dz_newton))
+            theta = norm(simplified) / jnp.where(step_norm > 0, step_norm, 1.0)
+            return jnp.where(jnp.isfinite(theta), theta, jnp.inf)
+
+        def nm_cond(c):
+            alpha, theta, it = c
+            return (
+                jnp.invert(theta <= 1 - alpha / 4)
+                & (it < self.max_backtracks)
+                & newton_ok
+            )
+
+        def nm_body(c):
+            alpha, _, it = c
+            alpha = 0.5 * alpha
+            return alpha, contraction(alpha), it + 1
+
+        alpha_n, theta, _ = lax.while_loop(nm_cond, nm_body, (one, contraction(one), 0))
+        ok_n = newton_ok & (theta <= 1 - alpha_n / 4)
+
+        # Otherwise Levenberg-Marquardt, always a descent direction of Psi, with an
+        # Armijo line search on Psi.
+        scaled_jac = weight[:, None] * jac
+        jtj = scaled_jac.T @ scaled_jac
+        nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(
+            jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
+        )
+        nu = jnp.maximum(nu, 1e3 * eps * jnp.max(jnp.abs(jtj)))
+        dz_lm = _conjugate_gradient(
+            jnp.where(finite, jtj, 0.0), jnp.where(finite, nu, 1.0), -grad_psi
+        )
+        dz_lm = jnp.where(jnp.all(jnp.isfinite(dz_lm)), dz_lm, 0.0)
+
+        def merit(z_):
+            r_ = weight * res(z_)
+            value = 0.5 * jnp.dot(r_, r_)
+            return jnp.where(jnp.isfinite(value), value, jnp.inf)
+
+        def armijo(dz):
+            slope = jnp.dot(grad_psi, dz)
+            descent = slope < 0
+
+            def accept(alpha):
+                return merit(z + alpha * dz) <= psi + 1e-4 * alpha * slope
+
+            def cond(c):
+                alpha, ok, it = c
+                return jnp.invert(ok) & (it < self.max_backtracks) & descent
+
+            def body(c):
+                alpha, _, it = c
+                alpha = 0.5 * alpha
+                return alpha, accept(alpha), it + 1
+
+            alpha, ok, _ = lax.while_loop(cond, body, (one, accept(one), 0))
+            return alpha, ok & descent
+
+        alpha_lm, ok_lm = lax.cond(
+            ok_n | converged,
+            lambda: (jnp.zeros((), dtype), jnp.array(False)),
+            lambda: armijo(dz_lm),
+        )
+        dz = jnp.where(ok_n, alpha_n * dz_newton, alpha_lm * dz_lm)
+        dz = jnp.where(converged, dz_newton, dz)
+        moved = converged | ok_n | ok_lm
+        z_new = jnp.where(moved, z + dz, z)
+        result = RESULTS.where(
+            moved,
+            RESULTS.successful,
+            RESULTS.where(
+                finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective
+            ),
+        )
+        done = converged | jnp.invert(moved)
+        return z_new, _State(done=done, result=result)
+
+    def terminate(self, residual, z, args, state):
+        del residual, z, args
+        return state.done, state.result
+
+    def postprocess(self, residual, z, args, state):
+        del residual, args, state
+        return z, {}
+
+    def complementarity_solver(self) -> "SemismoothNewton":
+        """Itself: it solves complementarity rows."""
+        return self
+
+
+SemismoothNewton.__init__.__doc__ = """**Arguments:**
+
+- `rtol`, `atol`: relative and absolute tolerance on the unknowns
+    `z = (x, lambda, mu)`. They also set the tolerance to which
+    [`constrained_jax.extremize`][] checks the KKT conditions after the iteration,
+    `sqrt(max(rtol, atol, 100 eps))`.
+- `linear_solver`: a Lineax solver for the tangent system of the implicit function
+    theorem in the backward pass (symmetric: the strictly active inequalities as
+    equalities). The Newton steps themselves LU-factor the dense Jacobian.
+    [`constrained_jax.DenseLU`][] (default) or [`constrained_jax.MINRES`][].
+- `max_backtracks`: halvings of the step before a line search gives up.
+"""
