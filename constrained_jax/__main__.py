@@ -25,11 +25,11 @@ Compiled programs are kept in JAX's persistent compilation cache
 `~/.cache/constrained_jax/jax`), so a second run skips nearly all of the compilation;
 `--no-compilation-cache` (or `CONSTRAINED_JAX_COMPILATION_CACHE=0`) turns it off.
 Programs are compiled with XLA:CPU's older code generator
-(`constrained_jax.settings.use_fast_compilation`: about 2x faster to compile, the same
-results to round-off, programs up to 27 % slower to run; a first run of the tour took
-24-27 s instead of 36-41 s on 2 cores), and small loops (a single trajectory) into one
-function each (`constrained_jax.settings.use_loop_kernels`: 1.7-5x faster single
-trajectories, and faster compilation too); `--xla-defaults` keeps XLA's defaults. The
+(`constrained_jax.settings.use_fast_compilation`: faster to compile, the same results
+to round-off, some programs slower to run), and small loops (a single trajectory) into
+one function each (`constrained_jax.settings.use_loop_kernels`: faster single
+trajectories, and faster compilation too); `--xla-defaults` keeps XLA's defaults
+(`benchmarks/README.md`, "XLA:CPU settings", measures both). The
 diffrax solves are traced with the library's diffrax patch
 (`constrained_jax.settings.use_diffrax_patch`: smaller programs, which the
 compilation cache stores, for the diffrax release it was written for);
@@ -164,7 +164,7 @@ def _parser() -> argparse.ArgumentParser:
             "fails. Pictures need matplotlib: pip install 'constrained_jax[plot]'. "
             "Compiled programs are kept in JAX's persistent compilation cache, so a "
             "second run skips most of the compilation (--no-compilation-cache), and "
-            "compiled with XLA:CPU's older code generator, about 2x faster to compile, "
+            "compiled with XLA:CPU's older code generator, faster to compile, "
             "small loops into one function each (--xla-defaults), diffrax patched "
             "for smaller programs (--diffrax-defaults)."
         ),
@@ -194,7 +194,7 @@ def _parser() -> argparse.ArgumentParser:
             action="store_true",
             help=(
                 "compile with XLA's default CPU settings (default: its older code "
-                "generator, about 2x faster to compile, and small loops into one "
+                "generator, faster to compile, and small loops into one "
                 "function each; see constrained_jax.settings.use_fast_compilation "
                 "and constrained_jax.settings.use_loop_kernels)"
             ),

@@ -4,33 +4,25 @@
 where the adjoint is chosen per case: `ForwardJacobianAdjoint`, which computes the
 reverse-mode derivative (`jax.grad`, `jax.vjp`, `jax.jacrev`) in forward mode when
 few inputs are differentiated, and by `diffrax.RecursiveCheckpointAdjoint()`
-otherwise. What was measured (`benchmarks/gradients.py`, two cylinders,
-`theta0 = 0.3`, Tsit5, `rtol = atol = 1e-8`, 16 steps), and why:
+otherwise. Why (`benchmarks/gradients.py` measures it):
 
-- `diffrax.RecursiveCheckpointAdjoint()`: `jax.grad` of `theta1(t1)` with respect to
-    `I` costs about 5x the solve whatever the number of checkpoints (`checkpoints=None`
-    sizes them from `max_steps`, 180 for `max_steps=16384`, and stores every one of
-    the 16 steps; 1 to 180 checkpoints cost 4.6x-6.8x). The backward pass recomputes
-    each step and runs its reverse: about 40% is the reverse of the vector field
-    (the Hessians and the KKT solve of each stage; the KKT solve itself is
-    differentiated by its implicit rule, `_solver/kkt_derivative.py`), and the rest is
-    diffrax's loop machinery in reverse (the same share as for a two-line ODE, whose
-    gradient costs 4.7x its solve).
-- `diffrax.ForwardMode()` with `jax.jvp`: 1.4x the solve, and under `jax.vmap` over
-    tangents the cost hardly grows with their number for a state this small (1 to 32
-    tangents: 1.5x). `ForwardJacobianAdjoint` uses it under `jax.grad` too: with `p`
+- `diffrax.RecursiveCheckpointAdjoint()`: the backward pass recomputes each step and
+    runs its reverse, whatever the number of checkpoints: the reverse of the vector
+    field (the Hessians and the KKT solve of each stage; the KKT solve itself is
+    differentiated by its implicit rule, `_solver/saddle_point.py`) and diffrax's loop
+    machinery in reverse. Its cost is several solves, and does not grow with the
+    number of differentiated inputs.
+- `diffrax.ForwardMode()` with `jax.jvp`: about the cost of the solve, and under
+    `jax.vmap` over tangents the cost hardly grows with their number for a small
+    state. `ForwardJacobianAdjoint` uses it under `jax.grad` too: with `p`
     differentiated input scalars (counted at trace time, over the leaves actually
-    perturbed: `I` and three closed-over scalars for the attached phase, 15 with the
-    initial state and time of the free flight after the release), the forward pass
-    also pushes the `p` unit tangents through the solve (one batched `jax.jvp`) and
-    keeps the Jacobian of the final state; the backward pass is its product with the
-    cotangent. `jax.grad` with respect to `I` costs 1.3x-1.8x the solve attached
-    (7.3x before, with `RecursiveCheckpointAdjoint` and the elimination
-    differentiated) and 2.9x through the release (5.7x), and no checkpoints are
-    stored. Forward mode is used up to `p = 16` and `p` times the size of the state
-    up to 256 (a large system's tangents cost in proportion: about 0.4x the solve
-    each, against about 5x for the whole reverse pass); above that
-    `diffrax.RecursiveCheckpointAdjoint()` (whose cost does not grow with `p`).
+    perturbed: the parameters, and the closed-over scalars and initial state of a
+    phase), the forward pass also pushes the `p` unit tangents through the solve (one
+    batched `jax.jvp`) and keeps the Jacobian of the final state; the backward pass
+    is its product with the cotangent, and no checkpoints are stored. Forward mode is
+    used up to `p = 16` and `p` times the size of the state up to 256 (a large
+    system's tangents cost in proportion to their number); above that
+    `diffrax.RecursiveCheckpointAdjoint()`.
 - `diffrax.BacksolveAdjoint` (the continuous adjoint) cannot be used: `simulate`
     saves through `diffrax.SaveAt(subs=...)` and stops at events (the release),
     neither of which it supports; nor are its gradients those of the discrete solve.
@@ -101,8 +93,7 @@ class ForwardJacobianAdjoint(diffrax.AbstractAdjoint):
         # Else the loops close over no traced value (the library passes its own
         # arrays as leaves: `jax.tree_util.Partial` events, modules), and each is
         # traced only where it runs: `forward` once, `reverse` only when the
-        # fallback differentiates. (Closure conversion traced both, each time: a
-        # third of the first call's tracing, `benchmarks/compile_time.py`.)
+        # fallback differentiates. (Closure conversion would trace both, each time.)
         state_size = sum(np.size(y) for y in jtu.tree_leaves(kwargs["init_state"].y))
         most = min(self.max_tangents, self.max_tangent_size // max(state_size, 1))
         return _loop((forward, reverse, dynamic), most)

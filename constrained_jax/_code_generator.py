@@ -4,15 +4,10 @@ function each (faster single trajectories).
 
 XLA compiles each program once per process (seconds for a simulation; the solves take
 milliseconds), so a first run, a notebook or a tour is mostly compilation. On the CPU,
-XLA's newer fusion emitters compile our programs about 2x slower than its older code
-generator (`benchmarks/code_generator.py`; table in `benchmarks/README.md`, "XLA:CPU's
-older code generator, opt-in"): in a fresh process the first `jit(simulate)` of the
-two rolling cylinders takes 1.5 s instead of 2.5 s (XLA's part 0.7 s instead of 1.6
-s), the tour's release program 4.8 s instead of 6.1 s, and `constrained-jax tour` 24-27
-s instead of 36-41 s. The price is run time: 0-27 % slower (the two cylinders'
-equations of motion batched over 1e4 states 27 %, a gradient through `simulate` 22 %,
-one trajectory 5 %). So it is not the library's default: the command line turns it on
-(`--xla-defaults` keeps XLA's), and users opt in with
+XLA's newer fusion emitters compile our programs markedly slower than its older code
+generator, which in turn runs some programs slower (`benchmarks/code_generator.py`;
+`benchmarks/README.md`, "XLA:CPU settings"). So it is not the library's default: the
+command line turns it on (`--xla-defaults` keeps XLA's), and users opt in with
 [`constrained_jax.settings.use_fast_compilation`][] at the top of a script or a
 notebook.
 
@@ -20,7 +15,7 @@ XLA:CPU runs a program as a sequence of kernels, one launch per fusion, except f
 `while` loop small enough for its `SmallWhileLoopHoistingPass`, which it compiles into
 one function. A single trajectory of a small system is such a loop, above XLA's
 default limit (1 kB): [`constrained_jax.settings.use_loop_kernels`][] raises the limit
-(`benchmarks/README.md`, "Small loops compiled into one function").
+(`benchmarks/README.md`, "XLA:CPU settings").
 
 XLA reads its flags (the environment variable `XLA_FLAGS`) once, when JAX starts its
 CPU backend at the first computation: not at `import jax` or
@@ -37,8 +32,8 @@ from ._compat import backends_started
 
 
 _FLAG = "--xla_cpu_use_fusion_emitters"
-# jaxlib 0.11 no longer knows the flag (`benchmarks/gpu.md`: a fatal abort at backend
-# start), so it is set only for the versions it was measured with.
+# jaxlib 0.11 no longer knows the flag (a fatal abort at backend start: `benchmarks/
+# README.md`, "On a GPU"), so it is set only for the versions it was measured with.
 _KNOWN_JAXLIB = frozenset({"0.10.2"})
 
 
@@ -76,18 +71,13 @@ def _user_choice(flags: str) -> bool | None:
 
 
 def use_fast_compilation() -> bool:
-    """Compile with XLA:CPU's older code generator for the rest of the process: about
-    2x faster compilation by XLA, the same results to round-off, and up to 27 % slower
-    run time.
+    """Compile with XLA:CPU's older code generator for the rest of the process:
+    faster compilation by XLA, the same results to round-off, and slower run time for
+    some programs (batched equations of motion, gradients through `simulate`).
 
-    For work that compiles more than it runs (first runs, notebooks, small studies):
-    `constrained-jax tour` takes 24-27 s instead of 36-41 s, the first
-    `jit(simulate)` of the two rolling cylinders 1.5 s instead of 2.5 s (XLA's part
-    0.7 s instead of 1.6 s). Compiled programs run 0-27 % slower: the two cylinders'
-    equations of motion batched over 1e4 states 27 %, a gradient through `simulate`
-    22 %, one trajectory 5 %, a batch of 1,000 trajectories 11 %. Measured on a
-    2-core CPU (`benchmarks/code_generator.py`, fresh processes, medians). Only the
-    CPU is affected (the flag is XLA:CPU's).
+    For work that compiles more than it runs (first runs, notebooks, small studies);
+    the trade is measured by `benchmarks/code_generator.py` (`benchmarks/README.md`,
+    "XLA:CPU settings"). Only the CPU is affected (the flag is XLA:CPU's).
 
     Call it at the top of a script or notebook, before the first computation: XLA
     reads its flags once, when JAX starts its backend (importing `jax` and
@@ -165,7 +155,7 @@ def _extra_options(flags: str) -> tuple[int | None, dict[str, str]]:
 
 def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
     """Let XLA:CPU compile each small `while` loop into one function, for the rest of
-    the process: single trajectories run 1.7-5x faster.
+    the process: single trajectories run several times faster.
 
     On the CPU, XLA runs a compiled program as a sequence of kernels, one per fusion,
     each launched by its runtime (tens of nanoseconds per launch). A `simulate` of a
@@ -175,17 +165,14 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
     touches at most 1 kB. This raises that limit to `max_bytes` (XLA's backend option
     `xla_cpu_small_while_loop_byte_threshold`).
 
-    Measured on a 2-core CPU (`benchmarks/code_generator.py --settings
-    default,loops,fast,fast+loops`, fresh processes, medians): single trajectories
-    run 1.7-5x faster (the two rolling cylinders over 16 steps 0.24 -> 0.14 ms, the
-    pendulum over 20 s 1.8 -> 0.34 ms, the cylinders' release run 0.53 -> 0.18 ms,
-    the 4-link chain 0.55 -> 0.17 ms), and XLA compiles `simulate` 20-30 % faster
-    (one function instead of a kernel per fusion). The equations of motion inside
-    the loop cost about what hand-written ones do (1.3x, against 6-8x without).
-    Results are the same to round-off (the test suite passes with it). A batch of
-    about 100 trajectories (`jax.vmap`) runs 1.6-2.5x faster; larger batches, whose
-    loops touch more than `max_bytes`, run as before. XLA skips loops that contain
-    custom calls (LAPACK, callbacks), `sort`, `scatter` or FFTs.
+    Single trajectories run several times faster, XLA compiles `simulate` faster (one
+    function instead of a kernel per fusion), and the equations of motion inside the
+    loop cost about what hand-written ones do (`benchmarks/code_generator.py
+    --settings default,loops,fast,fast+loops`; `benchmarks/README.md`, "XLA:CPU
+    settings"). Results are the same to round-off. Small batches (`jax.vmap` over
+    about a hundred trajectories) run faster too; larger batches, whose loops touch
+    more than `max_bytes`, run as before. XLA skips loops that contain custom calls
+    (LAPACK, callbacks), `sort`, `scatter` or FFTs.
 
     Call it at the top of a script or notebook, before the first computation: XLA
     reads its flags once, when JAX starts its backend (importing `jax` and
@@ -202,9 +189,8 @@ def use_loop_kernels(max_bytes: int = LOOP_KERNEL_BYTES) -> bool:
 
     - `max_bytes`: the largest number of bytes a loop's body may access to be
         compiled into one function (a positive integer). Single runs are taken from
-        16 kB on; batches of about 100 states from 1 MB on (1.6-2.5x faster than at
-        64 kB). At 16 MB a batch of 1,000 is taken too, on one thread, and was not
-        faster.
+        16 kB on, batches of about 100 states from 1 MB on (the default); much larger
+        limits take large batches onto one thread, which does not pay.
 
     **Returns:** `True` when the limit is set (now, or already by the user's
     `XLA_FLAGS`, whose value is kept); `False`, with a warning, where the user's

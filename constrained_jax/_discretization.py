@@ -234,9 +234,9 @@ def _vector(array: np.ndarray) -> Float[Array, " N"]:
 
 
 # Up to this many nodes the tables are NumPy constants, as small as the program around
-# them (measured: building Chebyshev(32)'s in the program made a catenary solve 1.26x
-# slower); above, they are built in the program (Chebyshev(2048)'s were 1.1 GB of
-# constants at 35 call sites).
+# them (building small tables in the program makes a solve slower); above, they are
+# built in the program (large tables as constants would be gigabytes of program at
+# their many call sites).
 CONSTANT_TABLES_MAX = 128
 
 

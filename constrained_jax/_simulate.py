@@ -124,7 +124,7 @@ def consistent_initial_state(
     constraints beyond `consistency_tol` (the test of
     [`constrained_jax.simulate`][], with its default), or is not finite: the
     constraint Jacobian is singular at or near `q0` (the pendulum's rod `r = l` at
-    the origin, where it used to return the origin unchanged), `q0` is too far for
+    the origin), `q0` is too far for
     `iterations` Gauss-Newton steps, or the constraints have no solution near `q0`.
     """
     q0 = inexact_asarray(q0)
