@@ -640,4 +640,3 @@ def project(
     jump, impulse = solve(q, -residual)
     singular = functools.reduce(jnp.logical_or, flags)
     return q, qd + jump, impulse, singular
-
