@@ -19,6 +19,7 @@ group, released once) the run stops at re-contact.
 
 import abc
 import functools
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -131,6 +132,8 @@ class Options(eqx.Module):
     max_steps: int = eqx.field(static=True)
     adjoint: diffrax.AbstractAdjoint
     progress_meter: diffrax.AbstractProgressMeter
+    saveat: Any  # a `constrained_jax.SaveAt`
+    consistency_tol: Any
 
     @property
     def adaptive(self) -> bool:

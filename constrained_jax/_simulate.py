@@ -300,13 +300,13 @@ def simulate(
         max_steps=max_steps,
         adjoint=default_adjoint(adjoint),
         progress_meter=progress_meter,
+        saveat=saveat,
+        consistency_tol=consistency_tol,
     )
     traj = _simulate(
         system,
         plan,
         options,
-        saveat,
-        consistency_tol,
         jnp.asarray(t0, dtype),
         jnp.asarray(t1, dtype),
         q0,
@@ -473,9 +473,10 @@ class Release(eqx.Module):
 
 
 @eqx.filter_jit
-def _simulate(system, plan, options, saveat, consistency_tol, t0, t1, q0, qd0, args):
+def _simulate(system, plan, options, t0, t1, q0, qd0, args):
     """The jitted core: the start checked, the phases run, the derived quantities
     computed at the save times, the status decided."""
+    saveat, consistency_tol = options.saveat, options.consistency_tol
     start_ok = all_finite((q0, qd0, args, t0, t1, options.dt0))
     if plan.contacts:
         active0, consistent = initial_contacts(
