@@ -17,7 +17,10 @@ first call of one trajectory (`jax.jit(fn).lower(...)`, `.compile()`), then the
 median run time of the compiled program over 7 calls, and the same for
 `jax.vmap` over 64 starts (the time per trajectory).
 
-    python benchmarks/events.py --a 71caf5d --b HEAD [--processes 3]
+    python benchmarks/events.py --a 71caf5d --b HEAD [--processes 3] [--diffrax-patch]
+
+`--diffrax-patch` opts in to `cjax.settings.use_diffrax_patch()` (revisions before it
+patch diffrax always).
 
 Writes `results/events.json` (every process, and the medians).
 """
@@ -46,6 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 import constrained_jax as cjax
 assert cjax.__file__.startswith({folder!r}), cjax.__file__
+if {patch!r} and hasattr(cjax, "settings"):
+    cjax.settings.use_diffrax_patch()
 jax.jit(lambda x: jax.lax.fori_loop(0, 3, lambda i, c: jnp.sin(c) @ c, x))(
     jnp.ones((4, 4))
 ).block_until_ready()
@@ -115,8 +120,8 @@ CASES = ("plain1", "events1", "plain2", "events2")
 FIELDS = ("trace_lower_s", "compile_s", "run_s", "vmap_s_per_trajectory")
 
 
-def run_child(folder: str, case: str) -> dict:
-    code = _CHILD.format(folder=folder, case=case)
+def run_child(folder: str, case: str, patch: bool) -> dict:
+    code = _CHILD.format(folder=folder, case=case, patch=patch)
     env = {**os.environ, "JAX_ENABLE_COMPILATION_CACHE": "false"}
     proc = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=env
@@ -133,6 +138,12 @@ def main() -> None:
     parser.add_argument("--b", default="HEAD")
     parser.add_argument("--processes", type=int, default=3)
     parser.add_argument("--cases", default=",".join(CASES))
+    parser.add_argument(
+        "--diffrax-patch",
+        action="store_true",
+        help="opt in to `cjax.settings.use_diffrax_patch()` where a revision has it "
+        "(revisions before it always patch diffrax)",
+    )
     parser.add_argument("--out", type=Path, default=HERE / "results" / "events.json")
     opts = parser.parse_args()
     cases = opts.cases.split(",")
@@ -144,7 +155,7 @@ def main() -> None:
         for _ in range(opts.processes):
             for case in cases:
                 for rev in ("a", "b"):
-                    row = run_child(os.path.join(folder, rev), case)
+                    row = run_child(os.path.join(folder, rev), case, opts.diffrax_patch)
                     runs[rev][case].append(row)
                     print(rev, case, json.dumps(row), flush=True)
     medians = {
@@ -183,7 +194,14 @@ def main() -> None:
     opts.out.parent.mkdir(parents=True, exist_ok=True)
     opts.out.write_text(
         json.dumps(
-            {"a": opts.a, "b": opts.b, "runs": runs, "medians": medians}, indent=1
+            {
+                "a": opts.a,
+                "b": opts.b,
+                "diffrax_patch": opts.diffrax_patch,
+                "runs": runs,
+                "medians": medians,
+            },
+            indent=1,
         )
     )
     print(f"wrote {opts.out}")
