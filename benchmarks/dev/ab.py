@@ -30,7 +30,7 @@ Cases (float64, after compilation):
   `acc chain N=4 vmap 1000`, `acc chain N=64 vmap 100`: its accelerations (each
   revision's default saddle-point solver).
 
-    python benchmarks/dev/ab.py --a REV --b HEAD [--reps 31] [--only REGEX]
+    python benchmarks/dev/ab.py --a REV --b HEAD [--reps 31] [--only REGEX] [--diffrax-patch]
 
 Writes `benchmarks/dev/results/ab.json` and `ab.png`.
 """
@@ -243,6 +243,12 @@ def main() -> None:
     parser.add_argument("--b", default="HEAD", help="the revision compared with it")
     parser.add_argument("--reps", type=int, default=31)
     parser.add_argument("--only", default=".", help="a regex on the case names")
+    parser.add_argument(
+        "--diffrax-patch",
+        action="store_true",
+        help="opt in to `settings.use_diffrax_patch()` in a revision that has it "
+        "(revisions before it always patch diffrax)",
+    )
     here = os.path.dirname(os.path.abspath(__file__))
     parser.add_argument("--out", default=os.path.join(here, "results"))
     opts = parser.parse_args()
@@ -254,7 +260,10 @@ def main() -> None:
     pattern = re.compile(opts.only)
     compiled: dict = {}
     for name in names:
-        for label, (fn, args) in cases(importlib.import_module(name)).items():
+        module = importlib.import_module(name)
+        if opts.diffrax_patch and hasattr(module, "settings"):
+            module.settings.use_diffrax_patch()
+        for label, (fn, args) in cases(module).items():
             if pattern.search(label):
                 jax.block_until_ready(fn(*args))
                 compiled.setdefault(label, {})[name] = (fn, args)
@@ -277,7 +286,15 @@ def main() -> None:
     path = os.path.join(opts.out, "ab.json")
     with open(path, "w") as f:
         json.dump(
-            {"a": opts.a, "b": opts.b, "reps": opts.reps, "rows": rows}, f, indent=1
+            {
+                "a": opts.a,
+                "b": opts.b,
+                "diffrax_patch": opts.diffrax_patch,
+                "reps": opts.reps,
+                "rows": rows,
+            },
+            f,
+            indent=1,
         )
     try:
         import matplotlib
