@@ -407,12 +407,17 @@ def initial_contacts(plan: Plan, system, q0, qd0, t0, args, tol):
 
 
 class _Contacts(eqx.Module):
-    """The contact data of a run with groups (traced values and static layout):
-    what the events, the watch and the impacts read."""
+    """The contact data of a run with groups (static): what the events, the watch
+    and the impacts read. `solve`: how a phase's multipliers are found, `None` for a
+    mode known at run time only (solved where some group is attached), `True` for a
+    phase known at trace time to have every group attached, `False` for one known to
+    have none (no solve)."""
 
     groups: tuple = eqx.field(static=True)
     firsts: tuple[int, ...] = eqx.field(static=True)
     signs: tuple[float, ...] = eqx.field(static=True)
+    k: int = eqx.field(static=True)
+    solve: bool | None = eqx.field(static=True, default=None)
 
     def pushing(self, lam, active):
         """`sign * lambda` of each group's first row, `+inf` for a free group."""
@@ -431,17 +436,20 @@ class _Contacts(eqx.Module):
             ]
         )
 
+    def multipliers(self, system, t, y, args):
+        """The multipliers of `system` at `(t, y)`, in the rows of the full system
+        (zeros when no group is attached: no solve is needed then)."""
+        q, qd = y
+        zeros = jnp.zeros((self.k,), q.dtype)
+        if self.solve is False:
+            return zeros
 
-def _multipliers(system, t, y, args):
-    """The multipliers of `system` at `(t, y)` (all zeros if no group is attached:
-    no solve is needed then)."""
-    q, qd = y
-    k = system.active.shape[0]
+        def solve():
+            return solve_accelerations(system, q, qd, t, args)[1]
 
-    def solve():
-        return solve_accelerations(system, q, qd, t, args)[1]
-
-    return jax.lax.cond(jnp.any(system.active), solve, lambda: jnp.zeros((k,), q.dtype))
+        if self.solve:
+            return solve()
+        return jax.lax.cond(jnp.any(system.active), solve, lambda: zeros)
 
 
 def _watched(contacts, active, lam):
@@ -452,14 +460,14 @@ def _watched(contacts, active, lam):
 
 def _watch_fn(contacts, active, system, t, y, args, **kwargs):
     del kwargs
-    return _watched(contacts, active, _multipliers(system, t, y, args))
+    return _watched(contacts, active, contacts.multipliers(system, t, y, args))
 
 
 def _event_values(contacts, active, system, offsets, t, y, args):
     """Per group: the pushing multiplier of an attached one, the gap (less its
     offset) of a free one: all start `>= 0`, and the first to fall through zero is
     the next event."""
-    lam = _multipliers(system, t, y, args)
+    lam = contacts.multipliers(system, t, y, args)
     return jnp.where(
         active, contacts.pushing(lam, active), contacts.gaps(y[0], t, args) - offsets
     )
@@ -479,6 +487,14 @@ def run_contacts(plan, options, solver, system, t0, t1, q0, qd0, args, ts, activ
     unlike a `while_loop`), each skipped once the run is over."""
     run = _ContactRun(plan, options, solver, system, args, ts, t1)
     carry = run.initial(t0, q0, qd0, active0)
+    if not plan.impacts:
+        # A release run: its modes are known at trace time, attached then free, so
+        # each phase runs its own system (the free one without the group's rows).
+        attached = functools.partial(run.phase, static=True)
+        free = functools.partial(run.phase, static=False)
+        c = attached(carry)
+        c = jax.lax.cond(c["done"], lambda c_: c_, free, c)
+        return run.finish(c, t0)
 
     def body(c, _):
         return jax.lax.cond(c["done"], lambda c_: c_, run.phase, c), None
@@ -501,6 +517,7 @@ class _ContactRun:
             tuple(groups),
             tuple(int(r) for r in self.firsts),
             tuple(g.sign for g in groups),
+            plan.k,
         )
         dtype = t1.dtype
         self.dtype = dtype
@@ -525,6 +542,24 @@ class _ContactRun:
     def held(self, active):
         """The system of the contact mode `active`."""
         return self.system.with_active(self.plan.row_mask(active))
+
+    def mode(self, c, static):
+        """`(active, held, contacts)` of a phase: for a mode known at run time only
+        (`static=None`), the system with the free groups' rows inactive; for a mode
+        known at trace time (`True`: every group attached, `False`: none), the full
+        system, or the system without the groups' rows (nothing to solve for them)."""
+        if static is None:
+            return c["active"], self.held(c["active"]), self.contacts
+        active = jnp.full((self.num_groups,), static)
+        held = self.system
+        if not static:
+            for index in sorted(self.plan.indices, reverse=True):
+                held = held.without(index)
+        contacts = self.contacts
+        contacts = _Contacts(
+            contacts.groups, contacts.firsts, contacts.signs, contacts.k, static
+        )
+        return active, held, contacts
 
     def initial(self, t0, q0, qd0, active0) -> dict:
         n, size, num_ts = q0.shape[0], self.plan.num_records, self.ts.shape[0]
@@ -556,43 +591,63 @@ class _ContactRun:
             "qd_event": jnp.full((size, n), inf),
         }
 
-    def phase(self, c) -> dict:
-        """One phase, in the mode `c["active"]`, and its event."""
-        active = c["active"]
-        held = self.held(active)
+    def phase(self, c, static=None) -> dict:
+        """One phase, in the mode `c["active"]` (or the mode `static` known at trace
+        time, see `mode`), and its event."""
+        active, held, contacts = self.mode(c, static)
+        c = dict(c, active=active)
         t_start = jnp.minimum(c["t"], self.t1 - self.tiny)
-        lam_start = _multipliers(held, t_start, (c["q"], c["qd"]), self.args)
-        start = _watched(self.contacts, active, lam_start)
+        lam_start = contacts.multipliers(held, t_start, (c["q"], c["qd"]), self.args)
+        start = _watched(contacts, active, lam_start)
         # A multiplier that already pulls is released at once, without integrating.
         pulls = jnp.any(active) & (start < 0)
 
         def released_at_start(_):
             saved = (c["q_saved"], c["qd_saved"], c["active_saved"])
-            pushing = self.contacts.pushing(lam_start, active)
+            pushing = contacts.pushing(lam_start, active)
             which = jnp.asarray(jnp.argmin(pushing), int)
             end = (t_start, c["q"], c["qd"], jnp.array(True), which)
             return end, RESULTS.successful, saved, c["stats"]
 
-        integrate = functools.partial(self.integrate, c, held, t_start, start)
-        end, result, saved, stats = jax.lax.cond(
-            pulls, released_at_start, integrate, None
-        )
+        integrate = functools.partial(self.integrate, c, held, contacts, t_start, start)
+        if static is False:
+            # (Nothing attached: nothing to release.)
+            end, result, saved, stats = integrate(None)
+        elif static:
+            # (Known at trace time: an empty phase where it pulls, no `lax.cond`.)
+            stop = jnp.where(pulls, t_start + self.tiny, self.t1)
+            run = integrate(None, stop)
+            released = released_at_start(None)
+            result = RESULTS.where(pulls, released[1], run[1])
+            end, saved, stats = jax.tree.map(
+                lambda a, b: jnp.where(pulls, a, b),
+                (released[0], released[2], released[3]),
+                (run[0], run[2], run[3]),
+            )
+        else:
+            end, result, saved, stats = jax.lax.cond(
+                pulls, released_at_start, integrate, None
+            )
         new = self.record(c, end, result, pulls)
         new.update(
             q_saved=saved[0], qd_saved=saved[1], active_saved=saved[2], stats=stats
         )
         return new
 
-    def integrate(self, c, held, t_start, start, _):
-        """One diffrax solve from the phase's start to its event (or `t1`)."""
+    def integrate(self, c, held, contacts, t_start, start, _, stop=None):
+        """One diffrax solve from the phase's start to its event (or `stop`, by
+        default `t1`)."""
         active, args, ts = c["active"], self.args, self.ts
+        stop = self.t1 if stop is None else stop
         q, qd = c["q"], c["qd"]
-        contacts = self.contacts
-        watch = (
-            jax.tree_util.Partial(_watch_fn, contacts, active, held),
-            jax.tree_util.Partial(_watched, contacts, active),
-            start,
-        )
+        watch = None
+        if contacts.solve is not False:
+            # (A phase known to have nothing attached watches no multiplier.)
+            watch = (
+                jax.tree_util.Partial(_watch_fn, contacts, active, held),
+                jax.tree_util.Partial(_watched, contacts, active),
+                start,
+            )
         delta = _gap_margin(q)
         offsets = jnp.where(
             active, 0.0, jnp.minimum(contacts.gaps(q, t_start, args), 0) - delta
@@ -606,9 +661,9 @@ class _ContactRun:
             ),
             root_finder=self.root_finder,
         )
-        clipped = jnp.clip(ts, t_start, self.t1)
+        clipped = jnp.clip(ts, t_start, stop)
         one = run_phase(
-            held, self.options, self.solver, t_start, self.t1, (q, qd), clipped,
+            held, self.options, self.solver, t_start, stop, (q, qd), clipped,
             event, args, watch,
         )  # fmt: skip
         stopped = one.result == diffrax.RESULTS.event_occurred
