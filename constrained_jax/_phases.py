@@ -493,7 +493,10 @@ def run_contacts(plan, options, solver, system, t0, t1, q0, qd0, args, ts, activ
         attached = functools.partial(run.phase, static=True)
         free = functools.partial(run.phase, static=False)
         c = attached(carry)
-        c = jax.lax.cond(c["done"], lambda c_: c_, free, c)
+        # (The free phase always runs, from `t1` if nothing was released: an empty
+        # span, cheaper than a `lax.cond` around a solve.)
+        after = free(c)
+        c = jax.tree.map(lambda x, y: jnp.where(c["done"], x, y), c, after)
         return run.finish(c, t0)
 
     def body(c, _):
