@@ -493,9 +493,9 @@ def run_contacts(plan, options, solver, system, t0, t1, q0, qd0, args, ts, activ
         attached = functools.partial(run.phase, static=True)
         free = functools.partial(run.phase, static=False)
         c = attached(carry)
-        # (The free phase always runs, from `t1` if nothing was released: an empty
-        # span, cheaper than a `lax.cond` around a solve.)
-        after = free(c)
+        # (The free phase always runs, over an empty span at `t1` where the run is
+        # over: cheaper than a `lax.cond` around a solve.)
+        after = free(dict(c, t=jnp.where(c["done"], t1, c["t"])))
         c = jax.tree.map(lambda x, y: jnp.where(c["done"], x, y), c, after)
         return run.finish(c, t0)
 
