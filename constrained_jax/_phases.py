@@ -616,20 +616,16 @@ class _ContactRun:
         if static is False:
             # (Nothing attached: nothing to release.)
             end, result, saved, stats = integrate(None)
-        elif static:
-            # (Known at trace time: an empty phase where it pulls, no `lax.cond`.)
-            stop = jnp.where(pulls, t_start + self.tiny, self.t1)
-            run = integrate(None, stop)
+        else:
+            # Where it pulls, the solve runs over an empty span and is discarded:
+            # cheaper than a `lax.cond` around a solve.
+            run = integrate(None, jnp.where(pulls, t_start + self.tiny, self.t1))
             released = released_at_start(None)
             result = RESULTS.where(pulls, released[1], run[1])
             end, saved, stats = jax.tree.map(
                 lambda a, b: jnp.where(pulls, a, b),
                 (released[0], released[2], released[3]),
                 (run[0], run[2], run[3]),
-            )
-        else:
-            end, result, saved, stats = jax.lax.cond(
-                pulls, released_at_start, integrate, None
             )
         new = self.record(c, end, result, pulls)
         new.update(

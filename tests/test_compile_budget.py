@@ -112,12 +112,13 @@ def test_equations_traced_once_per_system(monkeypatch):
     # Each trace of the equations adds a copy of the derivatives of the Lagrangian to
     # the traced program: the vector field (diffrax's initial step, the stages), the
     # release event, the watched multiplier, the saved multipliers and the singular
-    # check all reuse one trace per system; a release run's contact modes (attached,
-    # free) are data, the same system with other rows held: one trace too.
+    # check all reuse one trace per system: a release run traces the attached system,
+    # the free one (without the contact's rows) and, for the quantities at the
+    # saves, the system with the rows held at each save as data.
     args = cyl2.default_args()
     q0, qd0 = cyl2.state(jnp.asarray(0.2), jnp.asarray(0.0), args)
     controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
-    for system, num_systems in ((cyl2.system(), 1), (cyl2.contact_system(), 1)):
+    for system, num_systems in ((cyl2.system(), 1), (cyl2.contact_system(), 3)):
         system = _fresh(system)
 
         def run(q0, qd0, args, system=system):
