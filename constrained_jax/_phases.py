@@ -3,11 +3,14 @@ each, in a contact mode.
 
 Every run is a sequence of phases, and its kind is decided once, at trace time, by a
 `Plan`. A system without [`constrained_jax.Unilateral`][] constraints runs one phase.
-With them the run is a loop over phases (`lax.scan`), each in a contact mode: which
-groups are attached. A mode is data, a boolean per group, not a compiled branch: the
-system of every mode is the full system with the rows of the free groups inactive
-(`LagrangianSystem.with_active`: solved as trivial rows with zero multipliers), so
-one phase program serves every mode, whatever the number of groups.
+With them each phase is in a contact mode: which groups are attached. A release run
+(one group, released once) has two phases whose modes are known at trace time: the
+full system, then the system without the group's rows. An event run (`max_events`)
+is a loop over phases (`lax.scan`) in which the mode is data, a boolean per group,
+not a compiled branch: the system of every mode is the full system with the rows of
+the free groups inactive (`LagrangianSystem.with_active`: solved as trivial rows with
+zero multipliers), so one phase program serves every mode, whatever the number of
+groups.
 
 A phase ends at its first event: a release (the pushing multiplier of an attached
 group falls through zero: that group is freed) or a contact (the gap of a free group
