@@ -248,7 +248,9 @@ class Unilateral(AbstractConstraint):
     - `sign`: `+1.0` if the constraint can only push with a positive multiplier (in
         the convention `Q^c = A^T lambda`), `-1.0` for a negative one.
     - `gap`: `gap(q, t, args) -> scalar`, positive while separated, or `None` (the free
-        phase then runs to the end).
+        phase then runs to the end). `simulate` checks the two agree at the start (the
+        first row's force while it pushes opens the gap) and refuses a run where they
+        do not with `RESULTS.contact_sign_mismatch`.
     - `restitution`: Newton's coefficient of restitution `e` in `[0, 1]` for contacts
         that come and go: a float, or a callable `e(args) -> scalar` (traced, so
         differentiable and `vmap`-able). `None` (default): the one release and the

@@ -484,6 +484,30 @@ def _next_event(contacts, active, system, offsets, t, y, args, **kwargs):
     return jnp.min(_event_values(contacts, active, system, offsets, t, y, args))
 
 
+def signs_agree(plan: Plan, system, q0, qd0, t0, args):
+    """Whether each group's `sign` agrees with its `gap` at the start: the force of
+    the group's first row while it pushes (`sign * lambda > 0`) must open the gap,
+    `sign * grad(gap) . M^-1 a_1 >= 0`. A group without a gap, or where the product
+    is zero to round-off (the row cannot move the gap), is not judged. A start that
+    is not finite is judged elsewhere (`invalid_input`)."""
+    groups = plan.groups(system)
+    if not any(g.gap is not None for g in groups):
+        return jnp.array(True)
+    mass = system.mass_matrix(q0, qd0, t0, args)
+    rows = system.constraint_jacobian(q0, t0, args)
+    eps = jnp.finfo(q0.dtype).eps
+    agree = jnp.array(True)
+    for group, (first, _) in zip(groups, plan.rows):
+        if group.gap is None:
+            continue
+        grad = jax.grad(lambda q: jnp.reshape(group.gap(q, t0, args), ()))(q0)
+        moved = jnp.linalg.solve(mass, rows[first])
+        opens = group.sign * jnp.dot(grad, moved)
+        scale = jnp.linalg.norm(grad) * jnp.linalg.norm(moved)
+        agree = agree & jnp.invert(opens < -jnp.sqrt(eps) * scale)
+    return agree
+
+
 def run_contacts(plan, options, solver, system, t0, t1, q0, qd0, args, ts, active0):
     """The phases of a run with `Unilateral` groups (see the module docstring):
     `lax.scan` over `plan.num_phases` phases (reverse-mode autodiff goes through it,
@@ -761,8 +785,14 @@ class _ContactRun:
 
         stop = jnp.invert(record) | (result != RESULTS.successful)
         if not self.plan.impacts:
-            # Without impacts, a contact ends the run (a release run's re-contact).
+            # Without impacts, a contact ends the run (a release run's re-contact),
+            # before `t1`: not `successful` (the later saves are inf).
             stop = stop | is_contact
+            result = RESULTS.where(
+                record & is_contact & (result == RESULTS.successful),
+                RESULTS.recontact,
+                result,
+            )
         return dict(
             c,
             t=jnp.where(record, t2, t_end),

@@ -109,6 +109,21 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "positive while separated and falls through zero at contact (not a step, "
         "e.g. from `jnp.where`)."
     )
+    contact_sign_mismatch = (
+        "A `cjax.Unilateral`'s `sign` disagrees with its `gap` at the start: the "
+        "force of its first row while it pushes (`sign * lambda > 0`) would close the "
+        "gap instead of opening it, so the contact would let go where it should hold "
+        "and the bodies pass through each other. `sign` is the sign of the first "
+        "row's multiplier while the constraint pushes; `gap` is positive while "
+        "separated. Flip one of them. The run was not integrated."
+    )
+    recontact = (
+        "A released `cjax.Unilateral` made contact again (its `gap` fell through "
+        "zero) before `t1`. A release run (`max_events=None`) models one release and "
+        "stops there: `traj.release.recontact_time` says when, and later save times "
+        "are inf. To run on through the impact, give the `Unilateral` a "
+        "`restitution` and pass `simulate(..., max_events=N)`."
+    )
     invalid_restitution = (
         "A `cjax.Unilateral`'s `restitution(args)` is not in [0, 1] (or is NaN), or "
         "its `rest_speed(args)` is negative or NaN. Newton's coefficient of "

@@ -33,7 +33,15 @@ from ._misc import (
     inexact_asarray,
     SIMULATE_TOLERANCE,
 )
-from ._phases import initial_contacts, integrator, Options, Plan, Run, run_contacts
+from ._phases import (
+    initial_contacts,
+    integrator,
+    Options,
+    Plan,
+    Run,
+    run_contacts,
+    signs_agree,
+)
 from ._results import raise_if_failed, RESULTS
 from ._stabilization import AbstractStabilization, project_state, Unstabilized
 from ._system import LagrangianSystem, off_constraints
@@ -212,7 +220,8 @@ def simulate(
         own bar over chunks.
     - `max_events`: contacts that come and go (see
         [`constrained_jax.Unilateral`][]'s `restitution`). `None` (default): at most
-        one `Unilateral`, released once, the run stopping at re-contact. An integer
+        one `Unilateral`, released once, the run stopping at re-contact (with
+        `RESULTS.recontact`: later save times are inf). An integer
         `N >= 1`: any number of `Unilateral` groups, each with a `gap` and a
         `restitution`, each released (its multiplier lets go) and re-made (its gap
         closes: an impact) independently, up to `N` events in all, in one compiled
@@ -482,8 +491,9 @@ def _simulate(system, plan, options, t0, t1, q0, qd0, args):
         active0, consistent = initial_contacts(
             plan, system, q0, qd0, t0, args, consistency_tol
         )
+        signs_ok = signs_agree(plan, system, q0, qd0, t0, args)
     else:
-        active0 = None
+        active0, signs_ok = None, jnp.array(True)
         consistent = jnp.invert(
             off_constraints(system, q0, qd0, t0, args, consistency_tol)
         )
@@ -504,10 +514,12 @@ def _simulate(system, plan, options, t0, t1, q0, qd0, args):
     # (`invalid_input`) and runs the empty span at a finite `t0`: integrated, its
     # steps would all be rejected until `max_steps`, and under `jax.vmap` (a sweep)
     # every other lane of the batch would wait for it.
+    # A contact whose `sign` disagrees with its gap is refused the same way.
+    runs = start_ok & signs_ok
     t_start = jnp.where(jnp.isfinite(t0), t0, jnp.zeros_like(t0))
-    t0_run = jnp.where(start_ok, t0, t_start)
-    t1_run = jnp.where(start_ok, t1, t_start)
-    ts = jnp.where(start_ok, ts, t_start)
+    t0_run = jnp.where(runs, t0, t_start)
+    t1_run = jnp.where(runs, t1, t_start)
+    ts = jnp.where(runs, ts, t_start)
     controller, floored = step_floor(options.stepsize_controller, t0_run, t1_run)
     options = eqx.tree_at(lambda o: o.stepsize_controller, options, controller)
     if plan.contacts:
@@ -532,6 +544,7 @@ def _simulate(system, plan, options, t0, t1, q0, qd0, args):
     derived = _derived(system, plan, options.stabilization, saveat, run, ts, args)
     result = _status(run, derived, saveat, floored)
     result = RESULTS.where(grid_ok, result, RESULTS.invalid_time_grid)
+    result = RESULTS.where(signs_ok, result, RESULTS.contact_sign_mismatch)
     result = RESULTS.where(consistent, result, RESULTS.inconsistent_initial_state)
     result = RESULTS.where(start_ok, result, RESULTS.invalid_input)
     release = None if run.release is None else Release(*run.release)
@@ -549,10 +562,11 @@ def _simulate(system, plan, options, t0, t1, q0, qd0, args):
         events=run.events,
     )
     # The derivatives of a failed run are NaN (forward and reverse): `throw=True`
-    # raises only where the trajectory itself is used (see `raise_if_failed`).
-    return nan_derivatives_if_failed(
-        traj, (system, q0, qd0, args, t0, t1), result != RESULTS.successful
-    )
+    # raises only where the trajectory itself is used (see `raise_if_failed`). A
+    # release run stopped at re-contact keeps them: what it reached (the release,
+    # the landing, the saves before it) is right.
+    failed = (result != RESULTS.successful) & (result != RESULTS.recontact)
+    return nan_derivatives_if_failed(traj, (system, q0, qd0, args, t0, t1), failed)
 
 
 def _derived(system, plan, stabilization, saveat, run: Run, ts, args) -> dict:
@@ -658,9 +672,10 @@ def _status(run: Run, derived: dict, saveat, floored: bool) -> RESULTS:
         result,
     )
     # Fixed steps are not checked by diffrax: a blow-up to inf/NaN must not pass as
-    # success.
+    # success, nor, whatever the cause, a saved state that is not finite.
+    saved_finite = all_finite((run.q, run.qd))
     result = RESULTS.where(
-        (result == RESULTS.successful) & jnp.invert(end_finite),
+        (result == RESULTS.successful) & jnp.invert(end_finite & saved_finite),
         RESULTS.nonfinite,
         result,
     )

@@ -2,32 +2,22 @@ import importlib.metadata
 import os
 
 
-# XLA:CPU's older code generator (`--xla_cpu_use_fusion_emitters=false`): compilation
-# is most of this suite's time, and the older generator compiles the library's
-# programs about twice as fast. The results agree to round-off, and the tests compare
-# against closed forms, finite differences and invariants, never bit patterns.
-# One LLVM module per compilation (`--xla_cpu_parallel_codegen_split_count=1`): with
-# two xdist workers on two cores, parallel code generation only competes for them.
-# Both are read once, when JAX starts its CPU backend, so they are set here, before.
-# The notebooks (`test_notebooks.py`) and the fresh processes that set their own
-# `XLA_FLAGS` run XLA's defaults, so the code generator users run stays tested end to
-# end; `CONSTRAINED_JAX_TEST_XLA_DEFAULTS=1` runs every test with XLA's defaults.
-# XLA aborts the process on a flag it does not know, so the flags are set only for
-# the pinned jaxlib; any other runs XLA's defaults (the same results).
+# The suite runs the configuration `import constrained_jax` gives: XLA's defaults.
+# XLA's default code generator is said out loud (where the flag is known: XLA aborts
+# the process on a flag it does not know), so that the tour run in-process
+# (`test_cli.py`), whose `main` turns on the older code generator unless the user's
+# `XLA_FLAGS` choose, leaves this worker on the default.
+# `CONSTRAINED_JAX_TEST_FAST_COMPILATION=1` runs the suite with the older code
+# generator instead (`--xla_cpu_use_fusion_emitters=false`: faster compilation, the
+# same results to round-off), for quick local iterations only.
 USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
 _FLAGS_KNOWN = importlib.metadata.version("jaxlib") in ("0.10.2",)
-if _FLAGS_KNOWN and os.environ.get("CONSTRAINED_JAX_TEST_XLA_DEFAULTS", "0") != "1":
+_FAST = os.environ.get("CONSTRAINED_JAX_TEST_FAST_COMPILATION", "0") == "1"
+if _FLAGS_KNOWN and "xla_cpu_use_fusion_emitters" not in USER_XLA_FLAGS:
     os.environ["XLA_FLAGS"] = (
         USER_XLA_FLAGS
-        + " --xla_cpu_use_fusion_emitters=false"
-        + " --xla_cpu_parallel_codegen_split_count=1"
-    ).strip()
-elif _FLAGS_KNOWN:
-    # XLA's default said out loud, so that the tour run in-process
-    # (`test_cli.py`), whose `main` turns on the older code generator unless the
-    # user's `XLA_FLAGS` choose, leaves this worker on the default.
-    os.environ["XLA_FLAGS"] = (
-        USER_XLA_FLAGS + " --xla_cpu_use_fusion_emitters=true"
+        + " --xla_cpu_use_fusion_emitters="
+        + ("false" if _FAST else "true")
     ).strip()
 
 import jax  # noqa: E402

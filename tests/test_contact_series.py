@@ -385,35 +385,49 @@ def _wrong_sign(restitution):
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "issue 41 §3: released at once, the ball falls through the floor, the run "
-        "stops at re-contact 5.5e-5 s later and returns inf saves with `successful`"
-    ),
-)
+def _floor_run(constraint, sign, h):
+    floor = cjax.Unilateral(
+        constraint, sign=sign, gap=ball.height, restitution=0.5, rest_speed=0.01
+    )
+    system = cjax.LagrangianSystem(ball.lagrangian, constraints=floor)
+    q0, qd0 = ball.state(h, 0.5)
+    return cjax.simulate(
+        system, (0.0, 1.0), q0, qd0, ball.default_args(), max_events=4, throw=False
+    )
+
+
+def test_wrong_sign_of_a_free_start_is_refused():
+    """The check is of the `Unilateral`, not of the start: a ball dropped from
+    above a floor whose `sign` is wrong is refused before it falls."""
+    traj = _floor_run(cjax.Holonomic(ball.height), -1.0, 1.0)
+    assert traj.result == cjax.RESULTS.contact_sign_mismatch
+
+
+def test_a_row_written_the_other_way_with_its_sign_runs():
+    """`-y = 0` pushes with a negative multiplier: `sign=-1` is its right sign, and
+    the ball bounces as with `y = 0` and `sign=+1` (first impact at sqrt(2 h / g)
+    with speed sqrt(2 g h), h = 1)."""
+    traj = _floor_run(cjax.Holonomic(lambda q, t, args: -q[1]), -1.0, 1.0)
+    assert traj.result == cjax.RESULTS.successful
+    g = 9.81
+    np.testing.assert_allclose(traj.events.time[0], np.sqrt(2 / g), rtol=1e-9)
+    np.testing.assert_allclose(traj.events.speed[0], np.sqrt(2 * g), rtol=1e-9)
+    # The rebound at e v = v / 2 flies for 2 e v / g = sqrt(2 h / g) again.
+    np.testing.assert_allclose(traj.events.time[1], 2 * np.sqrt(2 / g), rtol=1e-8)
+
+
 def test_wrong_sign_release_is_not_successful():
-    """Without `max_events`: never `successful` with saved states that are not
-    finite."""
+    """Without `max_events`: refused at the start, naming the sign, never
+    `successful` with saved states that are not finite."""
     traj = _wrong_sign(None)
-    finite = np.all(np.isfinite(np.asarray(traj.q)))
-    assert finite or traj.result != cjax.RESULTS.successful
+    assert traj.result == cjax.RESULTS.contact_sign_mismatch
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "issue 41 §3: with `max_events`, the released ball sinks, is re-made, "
-        "released again, until the budget is spent: reported as "
-        "`max_events_reached` (increase max_events), not as the wrong sign"
-    ),
-)
 def test_wrong_sign_events_name_the_cause():
     """With `max_events`: never `successful`, and not `max_events_reached` either
     (a larger budget does not help)."""
     traj = _wrong_sign(0.5)
-    assert traj.result != cjax.RESULTS.successful
-    assert traj.result != cjax.RESULTS.max_events_reached
+    assert traj.result == cjax.RESULTS.contact_sign_mismatch
 
 
 @pytest.mark.xfail(

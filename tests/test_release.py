@@ -293,10 +293,14 @@ def test_release_and_recontact_of_a_lifted_particle():
             args,
             stepsize_controller=TIGHT,
             saveat=cjax.SaveAt(ts=jnp.array([0.05, 19.0])),
+            throw=False,
         )
 
     a, tau = jnp.asarray(3.0), jnp.asarray(0.5)
     traj = run(a, tau)
+    # The run stops at the landing, before t1: not `successful` (the save at
+    # t = 19 is inf), and the status says why.
+    assert traj.result == cjax.RESULTS.recontact
     t_release, u_release, t_landing = _release_and_landing(3.0, 0.5)
     rel = traj.release
     assert rel.released and rel.recontact and not rel.at_start
