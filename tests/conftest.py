@@ -80,6 +80,7 @@ _LONG_FIRST = (
     "test_sharp_edges_gauge_float32.py",
     "test_cli.py",
     "test_impacts.py",
+    "test_batched_bounds.py",
     "test_contact_series.py",
     "test_inactive_rows.py",
     "test_kkt_derivative.py",
