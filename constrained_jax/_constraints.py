@@ -16,6 +16,7 @@ where `Adot qdot + adot` is the derivative of `A qdot + a` along `(qdot, 1)` in
 
 import abc
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -32,7 +33,12 @@ class AbstractConstraint(eqx.Module):
     Two position-level residuals: `position_residual(q, t, args)`, shape `(k,)`, one
     per row of `A` (`G_j` for a holonomic row, `0` for a Pfaffian one); and
     `holonomic_residual(q, t, args)`, the holonomic rows `G` only.
+
+    `unilateral`: whether the constraint can let go (a contact group, `Unilateral`:
+    released where its multiplier would pull, re-made where its gap closes).
     """
+
+    unilateral: ClassVar[bool] = False
 
     @abc.abstractmethod
     def velocity_form(
@@ -89,6 +95,13 @@ class AbstractConstraint(eqx.Module):
         """`G(q, t)` of the holonomic rows only (none for Pfaffian constraints)."""
         return jnp.zeros((0,), q.dtype)
 
+    def discrete_residual(self, q0, q1, t0, h, args) -> Float[Array, " k"]:
+        """The rows as a variational integrator's step from `(q0, t0)` to
+        `(q1, t0 + h)` enforces them: in velocity form at the midpoint,
+        `A(q_m, t_m) (q1 - q0) / h + a(q_m, t_m)`."""
+        q_mid, t_mid = 0.5 * (q0 + q1), t0 + 0.5 * h
+        return self.velocity_residual(q_mid, (q1 - q0) / h, t_mid, args)
+
 
 # The most directions (colours of `A`, the probe and the bias) that `jacobian_products`
 # applies one by one; more are pushed together by `jax.vmap`.
@@ -111,6 +124,10 @@ class Holonomic(AbstractConstraint):
 
     def holonomic_residual(self, q, t, args):
         return self.position_residual(q, t, args)
+
+    def discrete_residual(self, q0, q1, t0, h, args):
+        """`G(q1, t0 + h)`: holonomic rows hold at the step's end."""
+        return self.position_residual(q1, t0 + h, args)
 
     def velocity_form(self, q, t, args):
         fn = lambda q_, t_: self.position_residual(q_, t_, args)
@@ -275,6 +292,7 @@ class Unilateral(AbstractConstraint):
     """
 
     constraints: tuple[AbstractConstraint, ...]
+    unilateral: ClassVar[bool] = True
     sign: float = 1.0
     gap: Callable | None = None
     restitution: float | Callable | None = None
@@ -362,6 +380,11 @@ class Unilateral(AbstractConstraint):
     def holonomic_residual(self, q, t, args):
         return jnp.concatenate(
             [c.holonomic_residual(q, t, args) for c in self.constraints]
+        )
+
+    def discrete_residual(self, q0, q1, t0, h, args):
+        return jnp.concatenate(
+            [c.discrete_residual(q0, q1, t0, h, args) for c in self.constraints]
         )
 
     def num_constraints(self, n, args, dtype=None):

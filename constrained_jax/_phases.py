@@ -80,9 +80,7 @@ class Plan(eqx.Module):
     def make(cls, system: LagrangianSystem, n: int, args, dtype, max_events):
         sizes = [c.num_constraints(n, args, dtype) for c in system.constraints]
         starts = np.cumsum([0] + sizes)
-        indices = tuple(
-            i for i, c in enumerate(system.constraints) if isinstance(c, Unilateral)
-        )
+        indices = tuple(i for i, c in enumerate(system.constraints) if c.unilateral)
         rows = tuple((int(starts[i]), int(starts[i + 1])) for i in indices)
         return cls(indices, rows, int(starts[-1]), max_events)
 
@@ -317,7 +315,7 @@ class VariationalIntegrator(AbstractIntegrator):
                 "A variational integrator enforces the constraints itself at every "
                 "step: use `stabilization=cjax.Unstabilized()` (the default)."
             )
-        if any(isinstance(c, Unilateral) for c in system.constraints):
+        if any(c.unilateral for c in system.constraints):
             raise ValueError(
                 "Release events (`cjax.Unilateral`) are not implemented for the "
                 "variational integrator; use a diffrax solver."
@@ -484,6 +482,10 @@ def _next_event(contacts, active, system, offsets, t, y, args, **kwargs):
     return jnp.min(_event_values(contacts, active, system, offsets, t, y, args))
 
 
+def _scalar_gap(gap, q, t, args):
+    return jnp.reshape(gap(q, t, args), ())
+
+
 def signs_agree(plan: Plan, system, q0, qd0, t0, args):
     """Whether each group's `sign` agrees with its `gap` at the start: the force of
     the group's first row while it pushes (`sign * lambda > 0`) must open the gap,
@@ -497,10 +499,10 @@ def signs_agree(plan: Plan, system, q0, qd0, t0, args):
     rows = system.constraint_jacobian(q0, t0, args)
     eps = jnp.finfo(q0.dtype).eps
     agree = jnp.array(True)
-    for group, (first, _) in zip(groups, plan.rows):
+    for group, (first, _) in zip(groups, plan.rows, strict=True):
         if group.gap is None:
             continue
-        grad = jax.grad(lambda q: jnp.reshape(group.gap(q, t0, args), ()))(q0)
+        grad = jax.grad(_scalar_gap, argnums=1)(group.gap, q0, t0, args)
         moved = jnp.linalg.solve(mass, rows[first])
         opens = group.sign * jnp.dot(grad, moved)
         scale = jnp.linalg.norm(grad) * jnp.linalg.norm(moved)

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from ._constraints import AbstractConstraint, Holonomic
+from ._constraints import AbstractConstraint
 from ._custom_types import Args, ScalarLike
 from ._misc import (
     all_finite,
@@ -269,17 +269,7 @@ def linearize(
         "the constraint manifold needs a point on it. Project it first with "
         "`cjax.consistent_initial_state(system, q_eq, qd_eq, t, args)`.",
     )
-    holonomic_rows = [
-        jax.jacfwd(c.position_residual)(q_eq, t, args)
-        for c in system.constraints
-        if isinstance(c, Holonomic)
-    ]
-    n = q_eq.shape[0]
-    jac_h = (
-        jnp.concatenate(holonomic_rows)
-        if holonomic_rows
-        else jnp.zeros((0, n), q_eq.dtype)
-    )
+    jac_h = jax.jacfwd(system.holonomic_residual)(q_eq, t, args)
     z_pos = _null_space(jac_h)
     z_vel = _null_space(system.constraint_jacobian(q_eq, t, args))
 

@@ -19,7 +19,6 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._adjoint import default_adjoint
-from ._constraints import Unilateral
 from ._contact import Events
 from ._diffrax_integrate import step_floor
 from ._implicit import nan_derivatives_if_failed
@@ -285,7 +284,7 @@ def simulate(
     integrate.check(system, stabilization, dt0, progress_meter)
     check_max_steps(max_steps)
     _check_max_events(system, max_events)
-    unilateral = any(isinstance(c, Unilateral) for c in system.constraints)
+    unilateral = any(c.unilateral for c in system.constraints)
     args = as_traced_args(args)
     t0, t1 = t_span
     _check_time_grid(t0, t1, saveat.ts, dt0, unilateral)
@@ -327,7 +326,7 @@ def simulate(
 
 def _check_max_events(system, max_events):
     """Refuse, at trace time, a `max_events` that does not fit the system."""
-    groups = [c for c in system.constraints if isinstance(c, Unilateral)]
+    groups = [c for c in system.constraints if c.unilateral]
     if max_events is None:
         if len(groups) > 1:
             raise ValueError(

@@ -78,7 +78,6 @@ import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._compat import buffer_at_set, while_loop
-from ._constraints import Holonomic
 from ._implicit import nan_derivatives_if_failed
 from ._kkt import kkt_solve, KKTProblem
 from ._misc import (
@@ -223,14 +222,7 @@ def _root(fn, params, z0, *, rtol, atol, max_iter):
 def _discrete_constraints(system: LagrangianSystem, q0, q1, t0, h, args):
     """Holonomic rows `G(q1, t0 + h)`; Pfaffian rows at the midpoint,
     `g(q_m, t_m) (q1 - q0)/h + h(q_m, t_m)`."""
-    parts = []
-    t1 = t0 + h
-    q_mid, t_mid = 0.5 * (q0 + q1), t0 + 0.5 * h
-    for c in system.constraints:
-        if isinstance(c, Holonomic):
-            parts.append(c.position_residual(q1, t1, args))
-        else:
-            parts.append(c.velocity_residual(q_mid, (q1 - q0) / h, t_mid, args))
+    parts = [c.discrete_residual(q0, q1, t0, h, args) for c in system.constraints]
     if not parts:
         return jnp.zeros((0,), q0.dtype)
     return jnp.concatenate(parts)

@@ -435,7 +435,8 @@ def test_wrong_sign_events_name_the_cause():
     raises=TypeError,
     reason=(
         "a float32 event run with `jax_enable_x64` on: diffrax's event root find "
-        "does `lax.cond(mask, value, lambda: 0.0)`, float32 against float64"
+        "does `lax.cond(mask, value, lambda: 0.0)`, float32 against float64 "
+        "(docs/upstream/diffrax.md, report 3)"
     ),
 )
 def test_float32_state_with_x64_enabled():

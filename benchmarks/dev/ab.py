@@ -30,7 +30,8 @@ Cases (float64, after compilation):
   `acc chain N=4 vmap 1000`, `acc chain N=64 vmap 100`: its accelerations (each
   revision's default saddle-point solver).
 
-    python benchmarks/dev/ab.py --a REV --b HEAD [--reps 31] [--only REGEX] [--diffrax-patch]
+    python benchmarks/dev/ab.py --a REV --b HEAD [--reps 31] [--only REGEX]
+        [--diffrax-patch]
 
 Writes `benchmarks/dev/results/ab.json` and `ab.png`.
 """
