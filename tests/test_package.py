@@ -144,3 +144,26 @@ def test_one_implicit_derivative_wrapper():
             ):
                 calls.append(path.relative_to(PACKAGE).as_posix())
     assert calls == ["_kkt.py"], calls
+
+
+def test_dependencies_are_ranges_and_the_tested_set_is_pinned():
+    """Installable beside other JAX libraries: every runtime dependency is a range
+    with a lower bound (no `==`, no upper bound unless a comment in pyproject.toml
+    names the incompatibility); `constraints.txt` pins each of them exactly, at its
+    lower bound or above."""
+    import tomllib
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    pinned = {}
+    for line in (root / "constraints.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            name, version = line.split("==")
+            pinned[name.lower().replace("_", "-")] = version
+    for spec in project["dependencies"]:
+        match = re.fullmatch(r"([A-Za-z0-9_.-]+)>=([0-9.]+)", spec)
+        assert match, f"{spec!r}: a lower bound only"
+        name, lower = match.group(1).lower(), match.group(2)
+        assert name in pinned, f"{name} is not in constraints.txt"
+        as_tuple = lambda v: tuple(int(x) for x in v.split(".")[:3])
+        assert as_tuple(pinned[name]) >= as_tuple(lower), name
