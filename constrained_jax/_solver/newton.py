@@ -111,9 +111,7 @@ class Newton(AbstractKKTSolver):
         # solver makes of a NaN right-hand side.
         defined = jnp.all(jnp.isfinite(r))
         lin_ok = (
-            defined
-            & (lin_result == lx.RESULTS.successful)
-            & jnp.all(jnp.isfinite(dz))
+            defined & (lin_result == lx.RESULTS.successful) & jnp.all(jnp.isfinite(dz))
         )
         dz = jnp.where(lin_ok, dz, 0.0)
         scale = atol + rtol * jnp.abs(z)
