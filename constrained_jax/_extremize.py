@@ -52,10 +52,10 @@ from ._solver.semismooth_newton import SemismoothNewton
 
 # The default linear solver is chosen by what fits (`default_solver`): dense LU while
 # the KKT matrix takes at most `DENSE_BYTES`, where forming it (n + k Hessian-vector
-# products) and factoring it (2 (n + k)^3 / 3 flops) at every Newton step stay cheap;
-# above, preconditioned MINRES, with dense LU as its fallback while the matrix takes
-# at most `FALLBACK_BYTES`.
-DENSE_BYTES = 2**25  # 32 MiB: n + k = 2048 in float64, 2896 in float32
+# products) and factoring it (2 (n + k)^3 / 3 flops, under a gigaflop) at every
+# Newton step stay cheap; above, preconditioned MINRES, with dense LU as its fallback
+# while the matrix takes at most `FALLBACK_BYTES`.
+DENSE_BYTES = 2**23  # 8 MiB: n + k = 1024 in float64, 1448 in float32
 FALLBACK_BYTES = 2**27  # 128 MiB: n + k = 4096 in float64, 5792 in float32
 # An explicitly dense solver above this size is warned about (the KKT matrix alone
 # takes `8 (n + k)^2` bytes, 134 MB at 4,096, and XLA's scratch several times that).
@@ -75,10 +75,12 @@ def default_solver(
     `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen at trace time by
     the memory the KKT matrix of `n + k` rows takes, `(n + k)^2` entries of `dtype`:
 
-    - at most 32 MiB (`n + k <= 2048` in float64, `2896` in float32):
+    - at most 8 MiB (`n + k <= 1024` in float64, `1448` in float32):
         [`constrained_jax.DenseLU`][], which forms the KKT matrix and factors it
-        (unrolled elimination for tiny systems, LAPACK's LU above). Its cost does
-        not depend on the conditioning of the problem.
+        (unrolled elimination for tiny systems, LAPACK's LU above) at every Newton
+        step. Its cost, at most `n + k` Hessian-vector products and
+        `2 (n + k)^3 / 3` flops (under a gigaflop) per step, does not depend on the
+        conditioning of the problem; above this size it grows to seconds per step.
     - larger: matrix-free [`constrained_jax.MINRES`][] with its diagonal
         (row-norm, Jacobi-type) preconditioner, whose cost per iteration is one
         Hessian-vector product and whose memory is a few vectors. It stops on the
@@ -88,7 +90,7 @@ def default_solver(
         converge is solved by `DenseLU` instead; above, it is reported as
         `RESULTS.linear_solve_failed`, never a wrong answer.
 
-    (`dense_bytes`, `fallback_bytes`: the two memory bounds, 32 MiB and 128 MiB.)
+    (`dense_bytes`, `fallback_bytes`: the two memory bounds, 8 MiB and 128 MiB.)
     """
     size = n + k
     itemsize = jnp.dtype(dtype).itemsize
@@ -374,7 +376,7 @@ def extremize(
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][], or `None` (default):
         `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the
         memory the KKT matrix of `n + k` rows takes: [`constrained_jax.DenseLU`][]
-        while it takes at most 32 MiB (`n + k <= 2048` in float64), preconditioned
+        while it takes at most 8 MiB (`n + k <= 1024` in float64), preconditioned
         matrix-free [`constrained_jax.MINRES`][] above, falling back on `DenseLU`
         where MINRES does not converge and the matrix takes at most 128 MiB
         (`constrained_jax._extremize.default_solver`). An explicitly dense solver
@@ -563,7 +565,7 @@ def _extremize(
     # The bounds travel with `args` so that they are differentiated like it.
     aug = (args, lower, upper)
     problem = lagrangian_problem(
-        lambda x, a: objective_flat(x, a[0]),
+        _undefined_is_nan(lambda x, a: objective_flat(x, a[0])),
         None if constraints_flat is None else lambda x, a: constraints_flat(x, a[0]),
         inequalities_flat,
         x_flat,
@@ -621,6 +623,23 @@ def _extremize(
         inequality_multipliers=mu,
         active=sol.active,
     )
+
+
+def _undefined_is_nan(objective):
+    """`F`, with its derivatives NaN wherever `F` itself is NaN or inf.
+
+    Newton sees only the derivatives of `F`, which may be finite where `F` is not
+    (`-log(1.5 - x)` has the gradient `1 / (1.5 - x)` at `x = 2`): so a step out of
+    the domain of `F` would be taken, and the solve would end where `F` is undefined.
+    Multiplying `F` by a constant (to autodiff) that is NaN there makes the KKT
+    residual NaN at such a point, and the line search backs off from it as from any
+    other undefined point. Where `F` is finite the derivatives are unchanged."""
+
+    def checked(x, args):
+        f = objective(x, args)
+        return f * jax.lax.stop_gradient(jnp.where(jnp.isfinite(f), 1.0, jnp.nan))
+
+    return checked
 
 
 def _bounds_ok(lower, upper) -> Bool[Array, ""]:

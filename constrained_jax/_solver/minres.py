@@ -35,11 +35,13 @@ class MINRES(lx.AbstractLinearSolver):
     MINRES runs on the symmetrically scaled operator `D^{-1/2} A D^{-1/2}`.
     `probes=0` turns the preconditioner off.
 
-    Terminates when the *true* residual satisfies `||A x - b|| <= atol + rtol ||b||`;
-    failure to do so within `max_steps` is reported as
-    `lineax.RESULTS.max_steps_reached`. NaN or inf in the operator or the right-hand
-    side is never turned into a number: the solution is then NaN and the status
-    `lineax.RESULTS.nonfinite_input`.
+    Terminates when the *true* residual satisfies `||A x - b|| <= atol + rtol ||b||`,
+    with `rtol` raised to `100 eps` of the dtype where it is below (as in
+    [`constrained_jax.Newton`][]: a residual cannot be computed more accurately than
+    its round-off, so that `rtol=1e-12` in float32 means `1.2e-5`); failure to do so
+    within `max_steps` is reported as `lineax.RESULTS.max_steps_reached`. NaN or inf
+    in the operator or the right-hand side is never turned into a number: the
+    solution is then NaN and the status `lineax.RESULTS.nonfinite_input`.
 
     **References:** C. C. Paige and M. A. Saunders, *Solution of sparse indefinite
     systems of linear equations*, SIAM J. Numer. Anal. 12 (1975) 617-629.
@@ -76,10 +78,13 @@ class MINRES(lx.AbstractLinearSolver):
         del options
         operator, packed, scale = state
         b = lxi.ravel_vector(vector, packed)
+        rtol = jnp.maximum(
+            jnp.asarray(self.rtol, b.dtype), 100 * jnp.finfo(b.dtype).eps
+        )
         x, num_steps, converged = minres(
             _flat_matvec(operator, packed),
             b,
-            rtol=self.rtol,
+            rtol=rtol,
             atol=self.atol,
             max_steps=self.max_steps,
             scale=scale,
