@@ -256,17 +256,18 @@ def test_fallback_gradients_through_extremize():
     )
 
     def value(mean):
-        return cjax.extremize(
+        sol = cjax.extremize(
             entropy,
             jnp.full((n,), 1.0 / n),
             (jnp.arange(n) / n, mean),
             constraints=normalisation_and_mean,
             solver=solver,
         )
+        return sol.value, sol
 
-    mean = jnp.asarray(E_MEAN)
-    grad = jax.grad(lambda m: value(m).value)(mean)
-    np.testing.assert_allclose(grad, -value(mean).multipliers[1], rtol=1e-8)
+    grad, sol = jax.grad(value, has_aux=True)(jnp.asarray(E_MEAN))
+    np.testing.assert_allclose(sol.x, closed_form(n), rtol=1e-9)
+    np.testing.assert_allclose(grad, -sol.multipliers[1], rtol=1e-8)
 
 
 # ---------------------------------------------------------------------------------
@@ -274,8 +275,8 @@ def test_fallback_gradients_through_extremize():
 # ---------------------------------------------------------------------------------
 
 
-_SOLVERS = [cjax.Newton(), _krylov(), _krylov(probes=0)]
-_IDS = ["dense", "minres", "minres-unpreconditioned"]
+_SOLVERS = [cjax.Newton(), _krylov()]
+_IDS = ["dense", "minres"]
 
 
 @pytest.mark.parametrize("solver", _SOLVERS, ids=_IDS)
