@@ -43,42 +43,64 @@ from ._kkt import (
 from ._misc import all_finite, as_traced_args, full_precision, inexact_asarray
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
+from ._solver.fallback import Fallback
 from ._solver.kkt_solver import AbstractKKTSolver
 from ._solver.minres import MINRES
 from ._solver.newton import Newton
 from ._solver.semismooth_newton import SemismoothNewton
 
 
-# The size `n + k` of the KKT system above which the default solver is matrix-free:
-# dense LU costs O((n + k)^3) time and O((n + k)^2) memory, MINRES one
-# Hessian-vector product per iteration. The switch sits above the crossover of the
-# two on a well-conditioned problem (`benchmarks/extremize.py` measures it), because
-# MINRES is unpreconditioned and needs more iterations on worse-conditioned
-# problems, where dense LU does not.
-DENSE_MAX = 256
+# The default linear solver is chosen by what fits (`default_solver`): dense LU while
+# the KKT matrix takes at most `DENSE_BYTES`, where forming it (n + k Hessian-vector
+# products) and factoring it (2 (n + k)^3 / 3 flops, under a gigaflop) at every
+# Newton step stay cheap; above, preconditioned MINRES, with dense LU as its fallback
+# while the matrix takes at most `FALLBACK_BYTES`.
+DENSE_BYTES = 2**23  # 8 MiB: n + k = 1024 in float64, 1448 in float32
+FALLBACK_BYTES = 2**27  # 128 MiB: n + k = 4096 in float64, 5792 in float32
 # An explicitly dense solver above this size is warned about (the KKT matrix alone
 # takes `8 (n + k)^2` bytes, 134 MB at 4,096, and XLA's scratch several times that).
 DENSE_WARN = 4096
 
 
-def default_solver(n: int, k: int, dtype, dense_max: int = DENSE_MAX) -> Newton:
+def default_solver(
+    n: int,
+    k: int,
+    dtype,
+    dense_bytes: int = DENSE_BYTES,
+    fallback_bytes: int = FALLBACK_BYTES,
+) -> Newton:
     """The solver [`constrained_jax.extremize`][] uses when none is given and there
     are no inequalities (with them, `SemismoothNewton()`).
 
-    `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the size
-    `n + k` of the KKT system, known at trace time: [`constrained_jax.DenseLU`][]
-    (which forms the KKT matrix: unrolled elimination for tiny systems, LAPACK's LU
-    above) up to `dense_max` unknowns, matrix-free [`constrained_jax.MINRES`][]
-    above, whose cost per iteration is one Hessian-vector product and whose memory is
-    a few vectors. MINRES stops on the true residual, `||K dz + r|| <=
-    max(1e-12, 1000 eps) ||r||`, within `max(1000, n + k)` iterations; when it does
-    not get there the solve reports `RESULTS.linear_solve_failed`, never a wrong
-    answer.
+    `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen at trace time by
+    the memory the KKT matrix of `n + k` rows takes, `(n + k)^2` entries of `dtype`:
+
+    - at most 8 MiB (`n + k <= 1024` in float64, `1448` in float32):
+        [`constrained_jax.DenseLU`][], which forms the KKT matrix and factors it
+        (unrolled elimination for tiny systems, LAPACK's LU above) at every Newton
+        step. Its cost, at most `n + k` Hessian-vector products and
+        `2 (n + k)^3 / 3` flops (under a gigaflop) per step, does not depend on the
+        conditioning of the problem; above this size it grows to seconds per step.
+    - larger: matrix-free [`constrained_jax.MINRES`][] with its diagonal
+        (row-norm, Jacobi-type) preconditioner, whose cost per iteration is one
+        Hessian-vector product and whose memory is a few vectors. It stops on the
+        true residual, `||K dz + r|| <= max(1e-12, 1000 eps) ||r||`, within
+        `max(1000, n + k)` iterations. While the matrix takes at most 128 MiB
+        (`n + k <= 4096` in float64) a Newton step whose MINRES solve does not
+        converge is solved by `DenseLU` instead; above, it is reported as
+        `RESULTS.linear_solve_failed`, never a wrong answer.
+
+    (`dense_bytes`, `fallback_bytes`: the two memory bounds, 8 MiB and 128 MiB.)
     """
-    if n + k <= dense_max:
+    size = n + k
+    itemsize = jnp.dtype(dtype).itemsize
+    if size**2 * itemsize <= dense_bytes:
         return Newton()
     rtol = max(1e-12, 1000 * float(jnp.finfo(dtype).eps))
-    return Newton(linear_solver=MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, n + k)))
+    krylov = MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, size))
+    if size**2 * itemsize <= fallback_bytes:
+        return Newton(linear_solver=Fallback(krylov, DenseLU(unroll_max=0)))
+    return Newton(linear_solver=krylov)
 
 
 def _solver_or_default(solver, n: int, k: int, m: int, dtype) -> AbstractKKTSolver:
@@ -352,11 +374,13 @@ def extremize(
         equality-constrained solve is unchanged, and a successful point whose `kind`
         contradicts `sense` is reported as `RESULTS.not_an_optimum`.
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][], or `None` (default):
-        `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the size
-        `n + k` of the KKT system: [`constrained_jax.DenseLU`][] up to 256 unknowns,
-        matrix-free [`constrained_jax.MINRES`][] above (`benchmarks/extremize.py`
-        measures both). An explicitly dense solver above 4,096 unknowns is warned
-        about. With inequalities the default is
+        `Newton(rtol=1e-10, atol=1e-10)` with the linear solver chosen by the
+        memory the KKT matrix of `n + k` rows takes: [`constrained_jax.DenseLU`][]
+        while it takes at most 8 MiB (`n + k <= 1024` in float64), preconditioned
+        matrix-free [`constrained_jax.MINRES`][] above, falling back on `DenseLU`
+        where MINRES does not converge and the matrix takes at most 128 MiB
+        (`constrained_jax._extremize.default_solver`). An explicitly dense solver
+        above 4,096 unknowns is warned about. With inequalities the default is
         [`constrained_jax.SemismoothNewton`][]`()`, and a solver given is replaced
         by its `complementarity_solver()` (a `Newton` by the `SemismoothNewton` of
         its tolerances and linear solver).
@@ -541,7 +565,7 @@ def _extremize(
     # The bounds travel with `args` so that they are differentiated like it.
     aug = (args, lower, upper)
     problem = lagrangian_problem(
-        lambda x, a: objective_flat(x, a[0]),
+        _undefined_is_nan(lambda x, a: objective_flat(x, a[0])),
         None if constraints_flat is None else lambda x, a: constraints_flat(x, a[0]),
         inequalities_flat,
         x_flat,
@@ -599,6 +623,23 @@ def _extremize(
         inequality_multipliers=mu,
         active=sol.active,
     )
+
+
+def _undefined_is_nan(objective):
+    """`F`, with its derivatives NaN wherever `F` itself is NaN or inf.
+
+    Newton sees only the derivatives of `F`, which may be finite where `F` is not
+    (`-log(1.5 - x)` has the gradient `1 / (1.5 - x)` at `x = 2`): so a step out of
+    the domain of `F` would be taken, and the solve would end where `F` is undefined.
+    Multiplying `F` by a constant (to autodiff) that is NaN there makes the KKT
+    residual NaN at such a point, and the line search backs off from it as from any
+    other undefined point. Where `F` is finite the derivatives are unchanged."""
+
+    def checked(x, args):
+        f = objective(x, args)
+        return f * jax.lax.stop_gradient(jnp.where(jnp.isfinite(f), 1.0, jnp.nan))
+
+    return checked
 
 
 def _bounds_ok(lower, upper) -> Bool[Array, ""]:

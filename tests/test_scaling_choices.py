@@ -15,6 +15,7 @@ import pytest
 import constrained_jax as cjax
 from constrained_jax import _extremize
 from constrained_jax._discretization import Chebyshev, Graded, PiecewiseLinear
+from constrained_jax._solver.fallback import Fallback
 from constrained_jax.scenes import catenary
 
 
@@ -36,21 +37,37 @@ def _closed_form():
     return inv / inv.sum(), -1.0 / inv.sum()
 
 
-def test_default_solver_is_chosen_by_size():
-    dense = _extremize.default_solver(200, 3, jnp.float64)
+def test_default_solver_is_chosen_by_memory():
+    """Dense while the KKT matrix takes at most 8 MiB, preconditioned MINRES above,
+    with a dense fallback while it takes at most 128 MiB (issue 41: the old switch at
+    n + k = 256 turned well-posed problems into Krylov failures)."""
+    dense = _extremize.default_solver(1000, 2, jnp.float64)
     assert isinstance(dense.linear_solver, cjax.DenseLU)
-    krylov = _extremize.default_solver(300, 3, jnp.float64)
-    assert isinstance(krylov.linear_solver, cjax.MINRES)
-    assert krylov.linear_solver.rtol == 1e-12
-    assert krylov.linear_solver.max_steps >= 303
-    # The boundary is inclusive, and the threshold can be passed.
-    boundary = _extremize.default_solver(_extremize.DENSE_MAX - 1, 1, jnp.float64)
+    # The boundary is inclusive: (n + k)^2 * 8 bytes = 8 MiB at n + k = 1024.
+    boundary = _extremize.default_solver(1023, 1, jnp.float64)
     assert isinstance(boundary.linear_solver, cjax.DenseLU)
-    small = _extremize.default_solver(6, 1, jnp.float64, dense_max=4)
-    assert isinstance(small.linear_solver, cjax.MINRES)
+    # float32 entries take half the memory.
+    assert isinstance(
+        _extremize.default_solver(1400, 3, jnp.float32).linear_solver, cjax.DenseLU
+    )
+    fallback = _extremize.default_solver(1024, 1, jnp.float64).linear_solver
+    assert isinstance(fallback, Fallback)
+    assert isinstance(fallback.first, cjax.MINRES)
+    assert isinstance(fallback.second, cjax.DenseLU)
+    assert fallback.first.rtol == 1e-12
+    assert fallback.first.max_steps >= 1025
+    assert fallback.first.probes > 0
+    krylov = _extremize.default_solver(5000, 2, jnp.float64).linear_solver
+    assert isinstance(krylov, cjax.MINRES)
+    assert krylov.max_steps >= 5002
+    # The bounds can be passed.
+    small = _extremize.default_solver(6, 1, jnp.float64, dense_bytes=4)
+    assert isinstance(small.linear_solver, Fallback)
+    bare = _extremize.default_solver(6, 1, jnp.float64, dense_bytes=4, fallback_bytes=4)
+    assert isinstance(bare.linear_solver, cjax.MINRES)
     # float32 cannot reach a relative residual of 1e-12: the tolerance follows eps.
-    loose = _extremize.default_solver(300, 3, jnp.float32)
-    assert loose.linear_solver.rtol == pytest.approx(1000 * np.finfo(np.float32).eps)
+    loose = _extremize.default_solver(3000, 3, jnp.float32).linear_solver.first
+    assert loose.rtol == pytest.approx(1000 * np.finfo(np.float32).eps)
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
@@ -61,7 +78,9 @@ def test_both_default_solvers_agree_with_the_closed_form(sign):
     x0 = jnp.full(D.shape, 0.3)
     args = jnp.asarray(sign)
     dense = cjax.extremize(weighted_energy, x0, args, constraints=total)
-    krylov_solver = _extremize.default_solver(6, 1, jnp.float64, dense_max=4)
+    krylov_solver = _extremize.default_solver(
+        6, 1, jnp.float64, dense_bytes=4, fallback_bytes=4
+    )
     krylov = cjax.extremize(
         weighted_energy, x0, args, constraints=total, solver=krylov_solver
     )
@@ -104,15 +123,22 @@ def test_explicitly_dense_solver_above_the_size_warns(monkeypatch):
 def test_minres_default_refuses_rather_than_answers_wrong():
     """At x = 0 the Hessian of sum x^3 / 3 - x_0 vanishes and its gradient does not:
     no Newton step exists. Dense LU says the KKT matrix is singular; MINRES cannot
-    meet its residual test and says so. Neither returns a point as successful."""
+    meet its residual test and says so; with the dense fallback of the default the
+    dense solve says the matrix is singular. None returns a point as successful."""
     objective = lambda x, args: jnp.sum(x**3) / 3 - args * x[0]
     x0, args = jnp.zeros(6), jnp.asarray(1.0)
     dense = cjax.extremize(objective, x0, args, throw=False)
     assert dense.result == cjax.RESULTS.singular_kkt
-    solver = _extremize.default_solver(6, 0, jnp.float64, dense_max=4)
+    solver = _extremize.default_solver(
+        6, 0, jnp.float64, dense_bytes=4, fallback_bytes=4
+    )
     krylov = cjax.extremize(objective, x0, args, solver=solver, throw=False)
     assert krylov.result == cjax.RESULTS.linear_solve_failed
     assert krylov.kind == cjax.EXTREMUM.unknown
+    solver = _extremize.default_solver(6, 0, jnp.float64, dense_bytes=4)
+    fallback = cjax.extremize(objective, x0, args, solver=solver, throw=False)
+    assert fallback.result == cjax.RESULTS.singular_kkt
+    assert fallback.kind == cjax.EXTREMUM.unknown
 
 
 # ---------------------------------------------------------------------------------

@@ -107,7 +107,12 @@ class Newton(AbstractKKTSolver):
             return sol.value, sol.result
 
         dz, lin_result = newton_direction(-r)
-        lin_ok = (lin_result == lx.RESULTS.successful) & jnp.all(jnp.isfinite(dz))
+        # F, G or their derivatives undefined at z: said so, whatever the linear
+        # solver makes of a NaN right-hand side.
+        defined = jnp.all(jnp.isfinite(r))
+        lin_ok = (
+            defined & (lin_result == lx.RESULTS.successful) & jnp.all(jnp.isfinite(dz))
+        )
         dz = jnp.where(lin_ok, dz, 0.0)
         scale = atol + rtol * jnp.abs(z)
         norm = lambda v: _rms(v / scale)
@@ -115,9 +120,14 @@ class Newton(AbstractKKTSolver):
         converged = jnp.all(r == 0) | (lin_ok & (dz_norm < 1))
 
         def contraction(alpha):
-            simplified, _ = newton_direction(-residual(z + alpha * dz, args))
+            # A trial point where the residual is not finite (outside the domain of
+            # F or G) is rejected before any linear solve sees it, for every linear
+            # solver alike.
+            r_trial = residual(z + alpha * dz, args)
+            simplified, _ = newton_direction(-r_trial)
             theta = norm(simplified) / dz_norm
-            return jnp.where(jnp.isfinite(theta), theta, jnp.inf)
+            ok = jnp.all(jnp.isfinite(r_trial)) & jnp.isfinite(theta)
+            return jnp.where(ok, theta, jnp.inf)
 
         def ls_cond(c):
             alpha, theta, it = c
@@ -136,17 +146,17 @@ class Newton(AbstractKKTSolver):
         alpha = jnp.where(converged, one, alpha)
         z_new = z + alpha * dz
         finite = jnp.all(jnp.isfinite(z_new))
-        # Why the Newton step could not be computed: a singular KKT matrix; NaN
-        # or inf in the residual or the matrix (F or G undefined there: DenseLU
-        # and MINRES report it as `nonfinite_input`, and Lineax does so when the
-        # right-hand side is not finite); otherwise an iterative solver that did
-        # not converge.
+        # Why the Newton step could not be computed: NaN or inf in the residual or
+        # the matrix (F or G undefined there: a non-finite residual is checked
+        # here, and DenseLU and MINRES report a non-finite matrix as
+        # `nonfinite_input`); a singular KKT matrix; otherwise an iterative solver
+        # that did not converge.
         failed_result = RESULTS.where(
-            lin_result == lx.RESULTS.singular,
-            RESULTS.singular_kkt,
+            jnp.invert(defined) | (lin_result == lx.RESULTS.nonfinite_input),
+            RESULTS.nonfinite_objective,
             RESULTS.where(
-                lin_result == lx.RESULTS.nonfinite_input,
-                RESULTS.nonfinite_objective,
+                lin_result == lx.RESULTS.singular,
+                RESULTS.singular_kkt,
                 RESULTS.linear_solve_failed,
             ),
         )
