@@ -40,7 +40,16 @@ from ._kkt import (
     reduced_hessian_extremes,
     tangent_projector,
 )
-from ._misc import all_finite, as_traced_args, full_precision, inexact_asarray
+from ._misc import (
+    all_finite,
+    as_traced_args,
+    check_max_steps,
+    check_signature,
+    check_unknowns,
+    full_precision,
+    inexact_asarray,
+    lists_as_arrays,
+)
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.kkt_solver import AbstractKKTSolver
@@ -442,7 +451,15 @@ def extremize(
     multipliers that are not unique) that reduced system is singular and the
     derivatives are NaN.
     """
+    check_signature(objective, "The objective", "F(x, args)")
+    if constraints is not None:
+        check_signature(constraints, "`constraints`", "G(x, args)")
+    if inequalities is not None:
+        check_signature(inequalities, "`inequalities`", "H(x, args)")
+    max_steps = check_max_steps(max_steps)
     args = as_traced_args(args)
+    x0 = lists_as_arrays(x0)
+    check_unknowns(x0, "x0")
     x0 = jtu.tree_map(inexact_asarray, x0)
     with_inequalities = not (inequalities is None and lower is None and upper is None)
     if sense not in (None, "minimize", "maximize"):
@@ -460,8 +477,8 @@ def extremize(
         raise ValueError(
             "`inequalities` must be a callable H(x, args) -> (m,) or None."
         )
-    lower = None if lower is None else jtu.tree_map(jnp.asarray, lower)
-    upper = None if upper is None else jtu.tree_map(jnp.asarray, upper)
+    lower = None if lower is None else jtu.tree_map(jnp.asarray, lists_as_arrays(lower))
+    upper = None if upper is None else jtu.tree_map(jnp.asarray, lists_as_arrays(upper))
     check_concrete_bounds(lower, upper)
     sol = _extremize(
         objective,

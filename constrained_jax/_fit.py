@@ -24,11 +24,13 @@ from ._custom_types import Args
 from ._misc import (
     all_finite,
     as_traced_args,
+    check_signature,
     default_float_dtype,
     full_precision,
+    lists_as_arrays,
     progress_bar,
 )
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 
 
 DEFAULT_LEARNING_RATE = 1e-2
@@ -197,8 +199,7 @@ def fit(
         search is safer far from the minimum, but the line search differentiates the
         loss again (in reverse mode), so a fit compiles two to three times longer.
     """
-    if not callable(loss):
-        raise ValueError("`loss` must be a callable loss(params, args) -> scalar.")
+    check_signature(loss, "`loss`", "loss(params, args)")
     if not isinstance(optimizer, optax.GradientTransformation):
         raise ValueError(
             "`optimizer` must be an optax GradientTransformation, e.g. "
@@ -224,31 +225,42 @@ def fit(
         res = _fit_traced(loss, optimizer, gtol, jac, steps, params0, args)
     else:
         res = _fit_blocks(loss, optimizer, gtol, jac, steps, params0, args, progress)
-    if throw:
-        res = res.result.error_if(res, res.result != RESULTS.successful)
-    return res
+    return raise_if_failed(res, throw)
 
 
 def _as_params(params0):
-    leaves = jtu.tree_leaves(params0)
+    """`params0` with lists of numbers as arrays and every leaf a strongly typed
+    real floating array (Python numbers and integer arrays become floats); a complex
+    or text leaf is refused, named by its path."""
+    params0 = lists_as_arrays(params0)
+    leaves = jtu.tree_flatten_with_path(params0)[0]
     if not leaves:
         raise ValueError("`params0` has no arrays in it: pass the starting parameters.")
-
-    def convert(leaf):
-        leaf = jnp.asarray(leaf)
+    converted = []
+    for path, leaf in leaves:
+        where = f"params0{jtu.keystr(path)}" if path else "`params0`"
+        try:
+            leaf = jnp.asarray(leaf)
+        except TypeError:
+            raise ValueError(
+                f"{where} is a {type(leaf).__name__}, not a number or an array: "
+                "every leaf of `params0` is a parameter to fit. Pass fixed settings "
+                "by closure or in `args`."
+            ) from None
         if jnp.issubdtype(leaf.dtype, jnp.complexfloating):
             raise ValueError(
-                "`params0` must be real: fit the real and imaginary parts of a complex "
-                "parameter as two real ones."
+                f"{where} is complex ({leaf.dtype}): `params0` must be real: fit the "
+                "real and imaginary parts of a complex parameter as two real ones."
             )
         if not jnp.issubdtype(leaf.dtype, jnp.floating):
             if not jnp.issubdtype(leaf.dtype, jnp.number):
-                raise ValueError(f"`params0` must hold numbers, got {leaf.dtype}.")
+                raise ValueError(
+                    f"{where} has the dtype {leaf.dtype}: `params0` must hold numbers."
+                )
             leaf = leaf.astype(default_float_dtype())
         # A strong type: a weakly typed start would recompile on every new value.
-        return jnp.asarray(leaf, leaf.dtype)
-
-    return jtu.tree_map(convert, params0)
+        converted.append(jnp.asarray(leaf, leaf.dtype))
+    return jtu.tree_unflatten(jtu.tree_structure(params0), converted)
 
 
 def _check_loss_value(value) -> None:

@@ -34,7 +34,7 @@ from ._misc import (
     SIMULATE_TOLERANCE,
 )
 from ._phases import initial_contacts, integrator, Options, Plan, Run, run_contacts
-from ._results import raise_if_failed, RESULTS
+from ._results import error_if, raise_if_failed, RESULTS
 from ._stabilization import AbstractStabilization, project_state, Unstabilized
 from ._system import LagrangianSystem, off_constraints
 from ._vector_field import solve_accelerations
@@ -132,12 +132,14 @@ def consistent_initial_state(
     system.check(q0, qd0, t0, args)
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q0.dtype)
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
     t0 = jnp.asarray(t0, q0.dtype)
     q, qd = project_state(system, q0, qd0, t0, args, iterations)
     bad = jnp.invert(all_finite((q, qd))) | off_constraints(
         system, q, qd, t0, args, consistency_tol
     )
-    return eqx.error_if(
+    return error_if(
         (q, qd),
         bad,
         "`consistent_initial_state`: the projected state still violates the "
@@ -274,7 +276,7 @@ def simulate(
         )
     integrate = integrator(solver)
     integrate.check(system, stabilization, dt0, progress_meter)
-    check_max_steps(max_steps)
+    max_steps = check_max_steps(max_steps)
     _check_max_events(system, max_events)
     unilateral = any(isinstance(c, Unilateral) for c in system.constraints)
     args = as_traced_args(args)
@@ -314,6 +316,33 @@ def simulate(
         args,
     )
     return raise_if_failed(traj, throw)
+
+
+def check_consistency_tol(consistency_tol):
+    """A concrete `consistency_tol` as a float, refused unless `>= 0` (a negative or
+    NaN tolerance would refuse every start, and say that the state is off the
+    constraints); a traced one is taken as it is."""
+    try:
+        value = float(consistency_tol)
+    except (TypeError, jax.errors.ConcretizationTypeError):
+        if isinstance(consistency_tol, jax.core.Tracer):
+            return consistency_tol
+        raise ValueError(
+            "`consistency_tol` must be a number >= 0 (or None for the default that "
+            f"follows the dtype), got {consistency_tol!r}."
+        ) from None
+    if not value >= 0:  # (NaN fails too.)
+        raise ValueError(
+            "`consistency_tol` is the largest constraint residual accepted at the "
+            "start, relative to `1 + max|q0|`: it must be >= 0 (or None for the "
+            f"default that follows the dtype), got {consistency_tol!r}."
+        )
+    # A Python number stays one (static); an array stays traced.
+    return (
+        value
+        if isinstance(consistency_tol, (int, float, np.number))
+        else (consistency_tol)
+    )
 
 
 def _check_max_events(system, max_events):
@@ -435,7 +464,9 @@ def _dtype_defaults(stepsize_controller, consistency_tol, dtype):
             )
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
-    elif isinstance(consistency_tol, (int, float)) and consistency_tol < 10 * eps:
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
+    if isinstance(consistency_tol, float) and consistency_tol < 10 * eps:
         warnings.warn(
             f"`consistency_tol={consistency_tol:g}` is below what {dtype} can check "
             f"(10 eps = {10 * eps:.1e}): a consistent initial state may be rejected. "

@@ -42,7 +42,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._compat import distributed_client, quiet_callback_errors
-from ._misc import progress_bar
+from ._misc import check_signature, progress_bar
 
 
 _FORMAT = "constrained_jax.sweep/1"
@@ -204,6 +204,7 @@ def sweep(
 
 def _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers):
     """`sweep`; `peers`: the other processes under `jax.distributed`, or `None`."""
+    check_signature(fn, "`fn` of `cjax.sweep`", "fn(inputs)")
     leaves, paths, treedef, n = _check_inputs(inputs)
     batch_size = _check_batch_size(batch_size)
     devices = _check_devices(devices)
@@ -640,6 +641,14 @@ def _check_inputs(inputs):
                 "of `inputs` must be an array (numpy or JAX) whose leading axis runs "
                 "over the inputs; wrap lists with `np.asarray` and pass constants to "
                 "`fn` by closure instead."
+            )
+        if isinstance(leaf, np.ndarray) and leaf.dtype.kind in "USO":
+            held = "objects" if leaf.dtype.kind == "O" else "text"
+            raise ValueError(
+                f"`sweep`: {name} holds {held} (dtype {leaf.dtype}), which JAX "
+                "cannot trace. Every leaf of `inputs` must be a numeric array; map "
+                "labels to numbers (an index into a "
+                "table `fn` closes over) or loop over them in Python."
             )
         if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.extended):
             raise ValueError(

@@ -89,7 +89,7 @@ from ._misc import (
     float_tolerance,
     full_precision,
 )
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.kkt_solver import AbstractKKTSolver
 from ._system import LagrangianSystem, off_constraints
@@ -506,7 +506,7 @@ def integrate_variational(
             "A variational integrator takes fixed steps: pass the step size, e.g. "
             "`simulate(..., solver=cjax.VariationalIntegrator(), dt0=0.01)`."
         )
-    check_max_steps(max_steps)
+    max_steps = check_max_steps(max_steps)
     q0 = jnp.asarray(q0)
     if not jnp.issubdtype(q0.dtype, jnp.inexact):
         q0 = q0.astype(default_float_dtype())
@@ -539,9 +539,7 @@ def integrate_variational(
     sol = nan_derivatives_if_failed(
         sol, (system, q0, qd0, args, t0, t1), sol.result != RESULTS.successful
     )
-    if throw:
-        sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
-    return sol
+    return raise_if_failed(sol, throw)
 
 
 class _Carry(eqx.Module):
