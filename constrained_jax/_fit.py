@@ -224,7 +224,9 @@ def fit(
     if traced:
         res = _fit_traced(loss, optimizer, gtol, jac, steps, params0, args)
     else:
-        res = _fit_blocks(loss, optimizer, gtol, jac, steps, params0, args, progress)
+        res = _fit_blocks(
+            loss, optimizer, gtol, jac, steps, params0, args, progress, throw
+        )
     return raise_if_failed(res, throw)
 
 
@@ -487,7 +489,7 @@ def _fit_traced(loss, optimizer, gtol, jac, steps, params0, args) -> FitResult:
 
 
 def _fit_blocks(
-    loss, optimizer, gtol, jac, steps, params0, args, progress
+    loss, optimizer, gtol, jac, steps, params0, args, progress, throw
 ) -> FitResult:
     state = _start(optimizer, params0, _loss_dtype(params0, args))
     # steps + 1 evaluations (the start and after each step), in blocks.
@@ -498,9 +500,20 @@ def _fit_blocks(
     try:
         done = 0
         for _ in range(num_blocks):
-            state, losses = _run_block(
-                loss, optimizer, gtol, jac, block, jnp.asarray(steps), state, args
-            )
+            try:
+                state, losses = _run_block(
+                    loss, optimizer, gtol, jac, block, jnp.asarray(steps), state, args
+                )
+            except eqx.EquinoxRuntimeError:
+                # A run-time error inside `loss` (a solve with `throw=True` that
+                # failed): with `throw=False` the fit stops as for a non-finite loss.
+                if throw:
+                    raise
+                state, losses = _until_error(
+                    loss, optimizer, gtol, jac, steps, state, args
+                )
+                history.append(losses)
+                break
             history.append(losses)
             taken = max(int(state.evaluations) - 1, 0)
             bar.update(taken - done)
@@ -516,3 +529,23 @@ def _fit_blocks(
         pad = jnp.full((steps + 1 - losses.shape[0],), state.loss, losses.dtype)
         losses = jnp.concatenate([losses, pad])
     return _finish(state, losses, gtol, params0)
+
+
+def _until_error(loss, optimizer, gtol, jac, steps, state, args):
+    """The steps of a block that raised, again one at a time from its start `state`
+    (the same evaluations: the loop is deterministic), up to the evaluation that
+    raises: the state before it, marked `RESULTS.nonfinite` (its `params` are the
+    last ones evaluated without error), and the losses of the steps that passed."""
+    losses = [jnp.zeros((0,), state.loss.dtype)]
+    while bool(_active(state, steps)):
+        try:
+            next_state, loss_value = _run_block(
+                loss, optimizer, gtol, jac, 1, jnp.asarray(steps), state, args
+            )
+        except eqx.EquinoxRuntimeError:
+            failed = RESULTS.where(jnp.array(True), RESULTS.nonfinite, state.result)
+            state = eqx.tree_at(lambda s: s.result, state, failed)
+            break
+        state = next_state
+        losses.append(loss_value)
+    return state, jnp.concatenate(losses)
