@@ -242,6 +242,8 @@ def _as_params(params0):
     for path, leaf in leaves:
         where = f"params0{jtu.keystr(path)}" if path else "`params0`"
         try:
+            if isinstance(leaf, (str, bytes)):
+                raise TypeError
             leaf = jnp.asarray(leaf)
         except TypeError:
             raise ValueError(
