@@ -344,10 +344,13 @@ def extremize(
     **Arguments:**
 
     - `objective`: `F(x, args) -> scalar`.
-    - `x0`: the starting point: an array of shape `(n,)` or any pytree of arrays.
+    - `x0`: the starting point: an array of shape `(n,)` or any pytree of arrays
+        (a list of numbers is the array it spells). Every leaf is an unknown and must
+        be real floating-point: an integer, boolean, complex or text leaf is refused,
+        named by its path (fixed values belong in `args`).
     - `args`: parameters, passed last to `F` and `G`. Python numbers in it are turned
         into arrays, so changing them never recompiles; anything that must stay static
-        belongs in the closure of `F`.
+        (text, a shape) belongs in the closure of `F`; text in `args` is refused.
     - `constraints`: `G(x, args) -> (k,)` (a scalar means one constraint), or `None`.
     - `inequalities`: `H(x, args) -> (m,)` (a scalar means one inequality), the
         constraints `H_i(x) <= 0`, or `None`.

@@ -112,7 +112,8 @@ def fit(
         `args`: they are traced, so fitting new data never recompiles. Pass the same
         function object to repeated fits (a new lambda is a new program to JAX).
     - `params0`: the starting parameters: an array or any pytree of floating arrays
-        (Python numbers and integer arrays become floats).
+        (Python numbers, lists of them and integer arrays become floats; a complex
+        or text leaf is refused, named by its path).
     - `optimizer`: any `optax.GradientTransformation`; by default
         `optax.adam(1e-2)`. Adam moves each parameter by about its learning rate per
         step whatever the gradient's scale, so with the default, parameters of order
@@ -145,7 +146,13 @@ def fit(
         100 steps. Also off when the environment variable `TQDM_DISABLE` is set to
         any non-empty value (as tqdm reads it: `0` and `off` disable it too), and
         inside `jax.jit` / `jax.vmap`.
-    - `throw`: raise on failure if `True`; otherwise report it in `result`.
+    - `throw`: raise on failure if `True`; otherwise report it in `result`. A
+        run-time error inside `loss` (a solve called with `throw=True` that failed)
+        is raised with `throw=True`; with `throw=False` the fit stops there with
+        `RESULTS.nonfinite` and the last parameters evaluated without error (the
+        block of steps is run again one step at a time up to the failing
+        evaluation). Inside `jax.jit` / `jax.vmap` such an error cannot be caught:
+        call the solves in `loss` with `throw=False` there.
 
     **Returns:** a [`constrained_jax.FitResult`][] (`params`, `losses`, `grad_norm`,
     `steps`, `result`).

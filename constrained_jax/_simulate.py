@@ -182,7 +182,8 @@ def simulate(
         [`constrained_jax.consistent_initial_state`][]. `consistency_tol=None`
         (default) follows the dtype of `q0`: `1e-8` in float64, `1000 eps = 1.2e-4`
         in float32. An explicit value below `10 eps` is warned about (round-off
-        alone may exceed it).
+        alone may exceed it); a negative or NaN one is refused (`ValueError`).
+        Lists (`[1.0, 0.0]`) are the arrays they spell.
     - `args`: parameters, passed last to every user function (traced).
     - `solver`: any diffrax ODE solver, or a
         [`constrained_jax.VariationalIntegrator`][] (symplectic, fixed step `dt0`,
@@ -193,7 +194,7 @@ def simulate(
     - `stepsize_controller`, `dt0`, `max_steps`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
         `dt0` is traced (another step size reuses the compiled program);
-        `max_steps` is static (it sizes the buffers).
+        `max_steps` is static (it sizes the buffers): a Python or NumPy integer.
         `stepsize_controller=None` (default) is
         `diffrax.PIDController(rtol=tol, atol=tol)` with `tol` following the dtype
         of `q0`: `1e-8` in float64, `100 eps = 1.2e-5` in float32 (where `1e-8`
