@@ -212,6 +212,34 @@ def check_max_steps(max_steps, name: str = "max_steps") -> int:
     return value
 
 
+def check_consistency_tol(consistency_tol):
+    """A concrete `consistency_tol`, refused unless a number `>= 0` (a negative or
+    NaN tolerance would refuse every start, saying that the state is off the
+    constraints); a traced one is taken as it is."""
+    if isinstance(consistency_tol, jax.core.Tracer):
+        return consistency_tol
+    number = (int, float, np.number, np.ndarray, jax.Array)
+    if (
+        isinstance(consistency_tol, (bool, np.bool_))
+        or not isinstance(consistency_tol, number)
+        or np.ndim(consistency_tol) != 0
+    ):
+        raise ValueError(
+            "`consistency_tol` must be a number >= 0 (or None for the default that "
+            f"follows the dtype), got {consistency_tol!r}."
+        )
+    if not float(consistency_tol) >= 0:  # (NaN fails too.)
+        raise ValueError(
+            "`consistency_tol` is the largest constraint residual accepted at the "
+            "start, relative to `1 + max|q0|`: it must be >= 0 (or None for the "
+            f"default that follows the dtype), got {consistency_tol!r}."
+        )
+    # A Python number stays one (static); an array stays traced.
+    if isinstance(consistency_tol, (int, float, np.number)):
+        return float(consistency_tol)
+    return consistency_tol
+
+
 def check_signature(fn, what: str, call: str) -> None:
     """Refuse, with a `ValueError` that names `fn`, the call expected and the
     signature given, a user function that cannot be called as `call` (e.g.

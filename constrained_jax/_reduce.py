@@ -25,6 +25,7 @@ from ._constraints import AbstractConstraint, Holonomic
 from ._custom_types import Args, ScalarLike
 from ._misc import (
     all_finite,
+    check_consistency_tol,
     CONSISTENCY_TOLERANCE,
     default_float_dtype,
     float_tolerance,
@@ -83,6 +84,8 @@ class Reduction(eqx.Module):
         q, qd = self.lift(s, sd, t, args)
         if consistency_tol is None:
             consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q.dtype)
+        else:
+            consistency_tol = check_consistency_tol(consistency_tol)
         # qddot = d/dt (qdot) along (sdot, sddot, 1).
         _, qdd = jax.jvp(q_dot, (s, sd, t), (sd, sdd, jnp.ones_like(t)))
         kkt = self.full.saddle_point_system(q, qd, t, args)
@@ -253,6 +256,8 @@ def linearize(
     system.check(q_eq, qd_eq, t, args)
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q_eq.dtype)
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
     t = jnp.asarray(t, q_eq.dtype)
     finite = all_finite((q_eq, qd_eq, t, args))
     q_eq, qd_eq = eqx.error_if(

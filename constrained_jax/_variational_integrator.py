@@ -83,6 +83,7 @@ from ._implicit import nan_derivatives_if_failed
 from ._kkt import kkt_solve, KKTProblem
 from ._misc import (
     all_finite,
+    check_consistency_tol,
     check_max_steps,
     CONSISTENCY_TOLERANCE,
     default_float_dtype,
@@ -526,6 +527,8 @@ def integrate_variational(
         raise ValueError("`t0`, `t1` and `dt0` must be scalars.")
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
     if isinstance(consistency_tol, (int, float)) and consistency_tol == float("inf"):
         consistent = jnp.asarray(True)  # not tested (`simulate` tests it itself)
     else:

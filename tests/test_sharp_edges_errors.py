@@ -355,6 +355,21 @@ def test_consistency_tol_must_be_a_nonnegative_number(tol):
         cjax.simulate(PENDULUM, (0.0, 0.1), Q0, QD0, ARGS, consistency_tol=tol)
     with pytest.raises(ValueError, match="consistency_tol"):
         cjax.consistent_initial_state(PENDULUM, Q0, QD0, 0.0, ARGS, consistency_tol=tol)
+    with pytest.raises(ValueError, match="consistency_tol"):
+        cjax.linearize(PENDULUM, Q0, QD0, 0.0, ARGS, consistency_tol=tol)
+    with pytest.raises(ValueError, match="consistency_tol"):
+        cjax.integrate_variational(
+            cjax.VariationalIntegrator(),
+            PENDULUM,
+            0.0,
+            0.1,
+            0.01,
+            Q0,
+            QD0,
+            ARGS,
+            ts_save=jnp.array([0.1]),
+            consistency_tol=tol,
+        )
 
 
 # --------------------------------------------------------------------------------------
