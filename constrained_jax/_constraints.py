@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
-from ._misc import default_float_dtype
+from ._misc import check_signature, default_float_dtype
 
 
 class AbstractConstraint(eqx.Module):
@@ -118,9 +118,12 @@ class Holonomic(AbstractConstraint):
 
     fn: Callable
 
+    def __check_init__(self):
+        check_signature(self.fn, "The function of `cjax.Holonomic`", "G(q, t, args)")
+
     def position_residual(self, q, t, args) -> Float[Array, " k"]:
-        """`G(q, t)` (every row is holonomic)."""
-        return jnp.atleast_1d(self.fn(q, t, args))
+        """`G(q, t)` (every row is holonomic); a list or tuple of rows is stacked."""
+        return jnp.atleast_1d(_as_array(self.fn(q, t, args), q.dtype))
 
     def holonomic_residual(self, q, t, args):
         return self.position_residual(q, t, args)
@@ -175,7 +178,9 @@ class Holonomic(AbstractConstraint):
         dtype = default_float_dtype() if dtype is None else dtype
         q = jax.ShapeDtypeStruct((n,), dtype)
         t = jax.ShapeDtypeStruct((), dtype)
-        out = jax.eval_shape(lambda q_, t_: self.fn(q_, t_, args), q, t)
+        out = jax.eval_shape(
+            lambda q_, t_: _as_array(self.fn(q_, t_, args), q_.dtype), q, t
+        )
         return _check_shape("Holonomic", "G(q, t, args)", out, n, ndim=(0, 1))
 
 
@@ -191,19 +196,32 @@ class Pfaffian(AbstractConstraint):
     g: Callable
     h: Callable | None = None
 
+    def __check_init__(self):
+        check_signature(self.g, "The function `g` of `cjax.Pfaffian`", "g(q, t, args)")
+        if self.h is not None:
+            check_signature(
+                self.h, "The function `h` of `cjax.Pfaffian`", "h(q, t, args)"
+            )
+
+    def _g(self, q, t, args):
+        return _as_array(self.g(q, t, args), q.dtype)
+
+    def _h(self, q, t, args):
+        return _as_array(self.h(q, t, args), q.dtype)
+
     def velocity_form(self, q, t, args):
-        jac = self.g(q, t, args)
+        jac = self._g(q, t, args)
         if self.h is None:
             a = jnp.zeros(jac.shape[0], jac.dtype)
         else:
-            a = self.h(q, t, args)
+            a = self._h(q, t, args)
         return jac, a
 
     def num_constraints(self, n, args, dtype=None):
         dtype = default_float_dtype() if dtype is None else dtype
         q = jax.ShapeDtypeStruct((n,), dtype)
         t = jax.ShapeDtypeStruct((), dtype)
-        out = jax.eval_shape(lambda q_, t_: self.g(q_, t_, args), q, t)
+        out = jax.eval_shape(lambda q_, t_: self._g(q_, t_, args), q, t)
         if not isinstance(out, jax.ShapeDtypeStruct) or out.ndim != 2:
             raise ValueError(
                 "Pfaffian g(q, t, args) must return an array of shape (k, n), one row "
@@ -216,13 +234,21 @@ class Pfaffian(AbstractConstraint):
             )
         k = out.shape[0]
         if self.h is not None:
-            h_out = jax.eval_shape(lambda q_, t_: self.h(q_, t_, args), q, t)
+            h_out = jax.eval_shape(lambda q_, t_: self._h(q_, t_, args), q, t)
             if getattr(h_out, "shape", None) != (k,):
                 raise ValueError(
                     f"Pfaffian h(q, t, args) must return shape (k,) = ({k},), got "
                     f"{getattr(h_out, 'shape', type(h_out).__name__)}."
                 )
         return k
+
+
+def _as_array(value, dtype):
+    """A constraint's value as an array: a (nested) list or tuple of rows, as NumPy
+    users write them, becomes one array of the coordinates' `dtype`."""
+    if isinstance(value, (list, tuple)):
+        return jnp.asarray(value, dtype=dtype)
+    return value
 
 
 def _check_shape(kind, signature, out, n, ndim):
@@ -322,8 +348,8 @@ class Unilateral(AbstractConstraint):
                 )
         if sign not in (1.0, -1.0):
             raise ValueError(f"`sign` must be +1.0 or -1.0, got {sign!r}.")
-        if gap is not None and not callable(gap):
-            raise ValueError("`gap` must be a callable gap(q, t, args) or None.")
+        if gap is not None:
+            check_signature(gap, "The `gap` of `cjax.Unilateral`", "gap(q, t, args)")
         if restitution is not None:
             if gap is None:
                 raise ValueError(
@@ -395,6 +421,7 @@ def _parameter(name, value, upper):
     """A float in `[0, upper]` (checked here) or a callable of `args` (checked at run
     time, `RESULTS.invalid_restitution`)."""
     if callable(value):
+        check_signature(value, f"`{name}` of `cjax.Unilateral`", f"{name}(args)")
         return value
     try:
         value = float(value)

@@ -40,7 +40,16 @@ from ._kkt import (
     reduced_hessian_extremes,
     tangent_projector,
 )
-from ._misc import all_finite, as_traced_args, full_precision, inexact_asarray
+from ._misc import (
+    all_finite,
+    as_traced_args,
+    check_max_steps,
+    check_signature,
+    check_unknowns,
+    full_precision,
+    inexact_asarray,
+    lists_as_arrays,
+)
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.fallback import Fallback
@@ -357,10 +366,13 @@ def extremize(
     **Arguments:**
 
     - `objective`: `F(x, args) -> scalar`.
-    - `x0`: the starting point: an array of shape `(n,)` or any pytree of arrays.
+    - `x0`: the starting point: an array of shape `(n,)` or any pytree of arrays
+        (a list of numbers is the array it spells). Every leaf is an unknown and must
+        be real floating-point: an integer, boolean, complex or text leaf is refused,
+        named by its path (fixed values belong in `args`).
     - `args`: parameters, passed last to `F` and `G`. Python numbers in it are turned
         into arrays, so changing them never recompiles; anything that must stay static
-        belongs in the closure of `F`.
+        (text, a shape) belongs in the closure of `F`; text in `args` is refused.
     - `constraints`: `G(x, args) -> (k,)` (a scalar means one constraint), or `None`.
     - `inequalities`: `H(x, args) -> (m,)` (a scalar means one inequality), the
         constraints `H_i(x) <= 0`, or `None`.
@@ -466,7 +478,15 @@ def extremize(
     multipliers that are not unique) that reduced system is singular and the
     derivatives are NaN.
     """
+    check_signature(objective, "The objective", "F(x, args)")
+    if constraints is not None:
+        check_signature(constraints, "`constraints`", "G(x, args)")
+    if inequalities is not None:
+        check_signature(inequalities, "`inequalities`", "H(x, args)")
+    max_steps = check_max_steps(max_steps)
     args = as_traced_args(args)
+    x0 = lists_as_arrays(x0)
+    check_unknowns(x0, "x0")
     x0 = jtu.tree_map(inexact_asarray, x0)
     with_inequalities = not (inequalities is None and lower is None and upper is None)
     if sense not in (None, "minimize", "maximize"):
@@ -484,8 +504,8 @@ def extremize(
         raise ValueError(
             "`inequalities` must be a callable H(x, args) -> (m,) or None."
         )
-    lower = None if lower is None else jtu.tree_map(jnp.asarray, lower)
-    upper = None if upper is None else jtu.tree_map(jnp.asarray, upper)
+    lower = None if lower is None else jtu.tree_map(jnp.asarray, lists_as_arrays(lower))
+    upper = None if upper is None else jtu.tree_map(jnp.asarray, lists_as_arrays(upper))
     check_concrete_bounds(lower, upper)
     sol = _extremize(
         objective,

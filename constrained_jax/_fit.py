@@ -24,11 +24,13 @@ from ._custom_types import Args
 from ._misc import (
     all_finite,
     as_traced_args,
+    check_signature,
     default_float_dtype,
     full_precision,
+    lists_as_arrays,
     progress_bar,
 )
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 
 
 DEFAULT_LEARNING_RATE = 1e-2
@@ -110,7 +112,8 @@ def fit(
         `args`: they are traced, so fitting new data never recompiles. Pass the same
         function object to repeated fits (a new lambda is a new program to JAX).
     - `params0`: the starting parameters: an array or any pytree of floating arrays
-        (Python numbers and integer arrays become floats).
+        (Python numbers, lists of them and integer arrays become floats; a complex
+        or text leaf is refused, named by its path).
     - `optimizer`: any `optax.GradientTransformation`; by default
         `optax.adam(1e-2)`. Adam moves each parameter by about its learning rate per
         step whatever the gradient's scale, so with the default, parameters of order
@@ -143,7 +146,13 @@ def fit(
         100 steps. Also off when the environment variable `TQDM_DISABLE` is set to
         any non-empty value (as tqdm reads it: `0` and `off` disable it too), and
         inside `jax.jit` / `jax.vmap`.
-    - `throw`: raise on failure if `True`; otherwise report it in `result`.
+    - `throw`: raise on failure if `True`; otherwise report it in `result`. A
+        run-time error inside `loss` (a solve called with `throw=True` that failed)
+        is raised with `throw=True`; with `throw=False` the fit stops there with
+        `RESULTS.nonfinite` and the last parameters evaluated without error (the
+        block of steps is run again one step at a time up to the failing
+        evaluation). Inside `jax.jit` / `jax.vmap` such an error cannot be caught:
+        call the solves in `loss` with `throw=False` there.
 
     **Returns:** a [`constrained_jax.FitResult`][] (`params`, `losses`, `grad_norm`,
     `steps`, `result`).
@@ -197,8 +206,7 @@ def fit(
         search is safer far from the minimum, but the line search differentiates the
         loss again (in reverse mode), so a fit compiles two to three times longer.
     """
-    if not callable(loss):
-        raise ValueError("`loss` must be a callable loss(params, args) -> scalar.")
+    check_signature(loss, "`loss`", "loss(params, args)")
     if not isinstance(optimizer, optax.GradientTransformation):
         raise ValueError(
             "`optimizer` must be an optax GradientTransformation, e.g. "
@@ -223,32 +231,47 @@ def fit(
     if traced:
         res = _fit_traced(loss, optimizer, gtol, jac, steps, params0, args)
     else:
-        res = _fit_blocks(loss, optimizer, gtol, jac, steps, params0, args, progress)
-    if throw:
-        res = res.result.error_if(res, res.result != RESULTS.successful)
-    return res
+        res = _fit_blocks(
+            loss, optimizer, gtol, jac, steps, params0, args, progress, throw
+        )
+    return raise_if_failed(res, throw)
 
 
 def _as_params(params0):
-    leaves = jtu.tree_leaves(params0)
+    """`params0` with lists of numbers as arrays and every leaf a strongly typed
+    real floating array (Python numbers and integer arrays become floats); a complex
+    or text leaf is refused, named by its path."""
+    params0 = lists_as_arrays(params0)
+    leaves = jtu.tree_flatten_with_path(params0)[0]
     if not leaves:
         raise ValueError("`params0` has no arrays in it: pass the starting parameters.")
-
-    def convert(leaf):
-        leaf = jnp.asarray(leaf)
+    converted = []
+    for path, leaf in leaves:
+        where = f"params0{jtu.keystr(path)}" if path else "`params0`"
+        try:
+            if isinstance(leaf, (str, bytes)):
+                raise TypeError
+            leaf = jnp.asarray(leaf)
+        except TypeError:
+            raise ValueError(
+                f"{where} is a {type(leaf).__name__}, not a number or an array: "
+                "every leaf of `params0` is a parameter to fit. Pass fixed settings "
+                "by closure or in `args`."
+            ) from None
         if jnp.issubdtype(leaf.dtype, jnp.complexfloating):
             raise ValueError(
-                "`params0` must be real: fit the real and imaginary parts of a complex "
-                "parameter as two real ones."
+                f"{where} is complex ({leaf.dtype}): `params0` must be real: fit the "
+                "real and imaginary parts of a complex parameter as two real ones."
             )
         if not jnp.issubdtype(leaf.dtype, jnp.floating):
             if not jnp.issubdtype(leaf.dtype, jnp.number):
-                raise ValueError(f"`params0` must hold numbers, got {leaf.dtype}.")
+                raise ValueError(
+                    f"{where} has the dtype {leaf.dtype}: `params0` must hold numbers."
+                )
             leaf = leaf.astype(default_float_dtype())
         # A strong type: a weakly typed start would recompile on every new value.
-        return jnp.asarray(leaf, leaf.dtype)
-
-    return jtu.tree_map(convert, params0)
+        converted.append(jnp.asarray(leaf, leaf.dtype))
+    return jtu.tree_unflatten(jtu.tree_structure(params0), converted)
 
 
 def _check_loss_value(value) -> None:
@@ -475,7 +498,7 @@ def _fit_traced(loss, optimizer, gtol, jac, steps, params0, args) -> FitResult:
 
 
 def _fit_blocks(
-    loss, optimizer, gtol, jac, steps, params0, args, progress
+    loss, optimizer, gtol, jac, steps, params0, args, progress, throw
 ) -> FitResult:
     state = _start(optimizer, params0, _loss_dtype(params0, args))
     # steps + 1 evaluations (the start and after each step), in blocks.
@@ -486,9 +509,20 @@ def _fit_blocks(
     try:
         done = 0
         for _ in range(num_blocks):
-            state, losses = _run_block(
-                loss, optimizer, gtol, jac, block, jnp.asarray(steps), state, args
-            )
+            try:
+                state, losses = _run_block(
+                    loss, optimizer, gtol, jac, block, jnp.asarray(steps), state, args
+                )
+            except eqx.EquinoxRuntimeError:
+                # A run-time error inside `loss` (a solve with `throw=True` that
+                # failed): with `throw=False` the fit stops as for a non-finite loss.
+                if throw:
+                    raise
+                state, losses = _until_error(
+                    loss, optimizer, gtol, jac, steps, state, args
+                )
+                history.append(losses)
+                break
             history.append(losses)
             taken = max(int(state.evaluations) - 1, 0)
             bar.update(taken - done)
@@ -504,3 +538,23 @@ def _fit_blocks(
         pad = jnp.full((steps + 1 - losses.shape[0],), state.loss, losses.dtype)
         losses = jnp.concatenate([losses, pad])
     return _finish(state, losses, gtol, params0)
+
+
+def _until_error(loss, optimizer, gtol, jac, steps, state, args):
+    """The steps of a block that raised, again one at a time from its start `state`
+    (the same evaluations: the loop is deterministic), up to the evaluation that
+    raises: the state before it, marked `RESULTS.nonfinite` (its `params` are the
+    last ones evaluated without error), and the losses of the steps that passed."""
+    losses = [jnp.zeros((0,), state.loss.dtype)]
+    while bool(_active(state, steps)):
+        try:
+            next_state, loss_value = _run_block(
+                loss, optimizer, gtol, jac, 1, jnp.asarray(steps), state, args
+            )
+        except eqx.EquinoxRuntimeError:
+            failed = RESULTS.where(jnp.array(True), RESULTS.nonfinite, state.result)
+            state = eqx.tree_at(lambda s: s.result, state, failed)
+            break
+        state = next_state
+        losses.append(loss_value)
+    return state, jnp.concatenate(losses)

@@ -43,6 +43,8 @@ from ._kkt import (
 from ._misc import (
     all_finite,
     as_traced_args,
+    check_max_steps,
+    check_signature,
     default_float_dtype,
     full_precision,
 )
@@ -75,6 +77,17 @@ class IntegralConstraint(eqx.Module):
 
     integrand: Callable
     value: ArrayLike | Callable
+
+    def __check_init__(self):
+        check_signature(
+            self.integrand,
+            "The integrand of `cjax.IntegralConstraint`",
+            "N(y, yp, x, args)",
+        )
+        if callable(self.value):
+            check_signature(
+                self.value, "The `value` of `cjax.IntegralConstraint`", "C(args)"
+            )
 
     def target(self, args, dtype) -> Scalar:
         value = self.value(args) if callable(self.value) else self.value
@@ -118,10 +131,9 @@ class Functional(eqx.Module):
         integral_constraints: tuple[IntegralConstraint, ...] = (),
         holonomic: Callable | None = None,
     ):
-        if not callable(lagrangian):
-            raise ValueError("`lagrangian` must be a callable L(y, y', x, args).")
-        if holonomic is not None and not callable(holonomic):
-            raise ValueError("`holonomic` must be a callable G(y, x, args) or None.")
+        check_signature(lagrangian, "The Lagrangian", "L(y, yp, x, args)")
+        if holonomic is not None:
+            check_signature(holonomic, "`holonomic`", "G(y, x, args)")
         if isinstance(integral_constraints, IntegralConstraint):
             integral_constraints = (integral_constraints,)
         integral_constraints = tuple(integral_constraints)
@@ -855,6 +867,7 @@ def solve_functional(
     function theorem on the discrete KKT system; one more linear solve per backward
     pass). Composes with `jax.jit` and `jax.vmap`.
     """
+    max_steps = check_max_steps(max_steps)
     args = as_traced_args(args)
     _check_boundary(functional, args)
     if (

@@ -185,13 +185,19 @@ def _nan_derivatives_jvp(primals, tangents):
     outputs, _, failed = primals
     t_outputs, t_inputs, _ = tangents
     leaves = jtu.tree_leaves(t_inputs)
-    total = sum((jnp.sum(leaf) for leaf in leaves), jnp.zeros(()))
+    # Inputs of several precisions (a float32 state, float64 parameters) are summed
+    # in the widest, explicitly: strict dtype promotion refuses to mix them.
+    with jax.numpy_dtype_promotion("standard"):
+        wide = jnp.result_type(*(leaf.dtype for leaf in leaves), jnp.zeros(()).dtype)
+    total = sum((jnp.sum(leaf).astype(wide) for leaf in leaves), jnp.zeros((), wide))
 
     def mark(leaf):
         dtype = leaf.dtype
         scale = jnp.where(failed, jnp.nan, 1.0).astype(dtype)
-        from_inputs = jnp.where(failed, jnp.nan, 0.0).astype(dtype) * total
-        return leaf * scale + from_inputs.astype(dtype)
+        from_inputs = jnp.where(failed, jnp.nan, 0.0).astype(dtype) * total.astype(
+            dtype
+        )
+        return leaf * scale + from_inputs
 
     return outputs, jtu.tree_map(mark, t_outputs)
 

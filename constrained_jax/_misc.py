@@ -1,6 +1,8 @@
 """Small helpers shared by the entry points."""
 
 import functools
+import inspect
+import operator
 import os
 import warnings
 
@@ -73,16 +75,35 @@ def progress_bar(progress: bool, **kwargs):
     return tqdm(disable=disable, **kwargs)
 
 
+def _is_text(leaf) -> bool:
+    """A string, or an array of strings or Python objects: nothing JAX can trace."""
+    if isinstance(leaf, (str, bytes)):
+        return True
+    return isinstance(leaf, np.ndarray) and leaf.dtype.kind in "USO"
+
+
 def as_traced_args(args: PyTree) -> PyTree:
     """Turn Python numbers in `args` into arrays, so that they are traced.
 
     `eqx.filter_jit` treats Python scalars as static: a new value would recompile. The
     library's contract is that parameters in `args` are traced and never baked in.
-    Booleans are left alone (they are flags, not parameters). Called first by every
-    entry point, it also warns once when the library runs in float32
-    (`warn_if_float32`).
+    Booleans are left alone (they are flags, not parameters). Integers and complex
+    numbers are parameters like any other (a count used in arithmetic, a complex
+    amplitude): they stay traced, of their own dtype. A string (or an array of
+    strings or objects) cannot be traced and is refused, naming its path in `args`:
+    static values belong in the closure of the function. Called first by every entry
+    point, it also warns once when the library runs in float32 (`warn_if_float32`).
     """
     warn_if_float32()
+    for path, leaf in jtu.tree_flatten_with_path(args)[0]:
+        if _is_text(leaf):
+            raise ValueError(
+                f"args{jtu.keystr(path)} is a {type(leaf).__name__} "
+                f"({_short_repr(leaf)}): every leaf of `args` is passed traced, as an "
+                "array, and text cannot be. Keep strings and other static settings "
+                "out of `args`: close over them in your function (or bind them with "
+                "`functools.partial`)."
+            )
 
     def convert(leaf):
         if isinstance(leaf, (bool, np.bool_)):
@@ -92,6 +113,75 @@ def as_traced_args(args: PyTree) -> PyTree:
         return leaf
 
     return jtu.tree_map(convert, args)
+
+
+def _short_repr(leaf) -> str:
+    text = repr(leaf)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _is_number_list(x) -> bool:
+    """A (nested) list or tuple of Python or NumPy numbers, as NumPy users write an
+    array; named tuples are pytrees, not arrays."""
+    if not isinstance(x, (list, tuple)) or hasattr(x, "_fields") or not x:
+        return False
+    return all(
+        _is_number_list(v)
+        if isinstance(v, (list, tuple))
+        else isinstance(v, (int, float, complex, np.number, np.bool_))
+        for v in x
+    )
+
+
+def lists_as_arrays(tree: PyTree) -> PyTree:
+    """`tree` with every (nested) list or tuple of plain numbers turned into a NumPy
+    array, as NumPy users expect (`x0=[1.0, 2.0]` is the array, not a pytree of two
+    scalars); lists holding arrays stay pytrees."""
+    if _is_number_list(tree):
+        return np.asarray(tree)
+    return jtu.tree_map(
+        lambda x: np.asarray(x) if _is_number_list(x) else x,
+        tree,
+        is_leaf=_is_number_list,
+    )
+
+
+def check_unknowns(tree: PyTree, name: str) -> None:
+    """Refuse, naming the leaf by its path, a leaf of the unknowns `tree` (`x0`)
+    that is not a real floating-point number or array: every leaf is an unknown, so
+    an integer or boolean one (perhaps meant as a fixed count) would silently become
+    one, and a complex or text one cannot be."""
+    leaves = jtu.tree_flatten_with_path(tree)[0]
+    if not leaves:
+        raise ValueError(f"`{name}` has no arrays in it: pass the starting point.")
+    for path, leaf in leaves:
+        where = f"{name}{jtu.keystr(path)}" if path else f"`{name}`"
+        if _is_text(leaf):
+            raise ValueError(
+                f"{where} is a {type(leaf).__name__} ({_short_repr(leaf)}): every leaf "
+                f"of `{name}` is an unknown and must be a floating-point number or "
+                "array. Pass text and other fixed settings by closure."
+            )
+        try:
+            dtype = jnp.result_type(leaf)
+        except TypeError:
+            raise ValueError(
+                f"{where} is a {type(leaf).__name__}, not a number or an array: every "
+                f"leaf of `{name}` is an unknown and must be a floating-point array."
+            ) from None
+        if jnp.issubdtype(dtype, jnp.complexfloating):
+            raise ValueError(
+                f"{where} is complex ({dtype}): the unknowns are real. Write a complex "
+                "unknown as two real ones (its real and imaginary parts)."
+            )
+        if not jnp.issubdtype(dtype, jnp.floating):
+            raise ValueError(
+                f"{where} has the dtype {dtype} ({_short_repr(leaf)}): every leaf of "
+                f"`{name}` is an unknown, so an integer or boolean leaf would become "
+                "one silently. Pass floats (`1.0`, not `1`; `np.array([1.0, 2.0])` or "
+                "`.astype(float)`) for an unknown, and put fixed values (counts, "
+                "flags) in `args` or the closure of your functions."
+            )
 
 
 def all_finite(tree: PyTree) -> Bool[Array, ""]:
@@ -104,9 +194,88 @@ def all_finite(tree: PyTree) -> Bool[Array, ""]:
     return ok
 
 
-def check_max_steps(max_steps, name: str = "max_steps") -> None:
-    if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
-        raise ValueError(f"`{name}` must be a positive int, got {max_steps!r}.")
+def check_max_steps(max_steps, name: str = "max_steps") -> int:
+    """`max_steps` as a positive Python `int`. It sizes buffers, so it is static: a
+    NumPy integer (`np.int64(100)`) is accepted (`operator.index`), also inside
+    `jax.jit`; a float, a bool or a traced value is not."""
+    try:
+        if isinstance(max_steps, (bool, np.bool_)):
+            raise TypeError
+        value = operator.index(max_steps)
+    except TypeError:
+        raise ValueError(
+            f"`{name}` must be a positive integer (a Python or NumPy int: it sizes "
+            f"the buffers, so it cannot be traced), got {max_steps!r}."
+        ) from None
+    if value < 1:
+        raise ValueError(f"`{name}` must be a positive integer, got {value!r}.")
+    return value
+
+
+def check_consistency_tol(consistency_tol):
+    """A concrete `consistency_tol`, refused unless a number `>= 0` (a negative or
+    NaN tolerance would refuse every start, saying that the state is off the
+    constraints); a traced one is taken as it is."""
+    if isinstance(consistency_tol, jax.core.Tracer):
+        return consistency_tol
+    number = (int, float, np.number, np.ndarray, jax.Array)
+    if (
+        isinstance(consistency_tol, (bool, np.bool_))
+        or not isinstance(consistency_tol, number)
+        or np.ndim(consistency_tol) != 0
+    ):
+        raise ValueError(
+            "`consistency_tol` must be a number >= 0 (or None for the default that "
+            f"follows the dtype), got {consistency_tol!r}."
+        )
+    if not float(consistency_tol) >= 0:  # (NaN fails too.)
+        raise ValueError(
+            "`consistency_tol` is the largest constraint residual accepted at the "
+            "start, relative to `1 + max|q0|`: it must be >= 0 (or None for the "
+            f"default that follows the dtype), got {consistency_tol!r}."
+        )
+    # A Python number stays one (static); an array stays traced.
+    if isinstance(consistency_tol, (int, float, np.number)):
+        return float(consistency_tol)
+    return consistency_tol
+
+
+def check_signature(fn, what: str, call: str) -> None:
+    """Refuse, with a `ValueError` that names `fn`, the call expected and the
+    signature given, a user function that cannot be called as `call` (e.g.
+    `"G(q, t, args)"`: as many positional arguments as it lists).
+
+    Read from `inspect.signature`, so `functools.partial`, callable objects
+    (`equinox.Module`s with `__call__`), jitted functions and `*args` functions are
+    judged by what they accept. A callable without a readable signature (some
+    built-ins) is not checked here."""
+    if not callable(fn):
+        raise ValueError(f"{what} must be a callable {call}, got {fn!r}.")
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return
+    names = call[call.index("(") + 1 : call.rindex(")")].split(", ")
+    try:
+        signature.bind(*names)
+    except TypeError:
+        pass
+    else:
+        return
+    name = getattr(fn, "__qualname__", None) or type(fn).__qualname__
+    name = "the lambda" if name.endswith("<lambda>") else f"`{name}`"
+    count = f"{len(names)} positional argument" + ("s" if len(names) > 1 else "")
+    advice = ""
+    if names[-1] == "args":
+        advice = (
+            " Every user function takes the parameters `args` last, even when it does "
+            f"not use them (`lambda {', '.join(names)}: ...`; see the conventions "
+            "page)."
+        )
+    raise ValueError(
+        f"{what} is called as {call}, with {count}, but {name} has the signature "
+        f"{signature}.{advice}"
+    )
 
 
 def inexact_asarray(x) -> Array:
@@ -114,6 +283,8 @@ def inexact_asarray(x) -> Array:
     stays float32), others become the default float. Weak types would recompile on
     every change."""
     warn_if_float32()
+    if isinstance(x, (list, tuple)):
+        x = jnp.asarray(x)  # a NumPy user's list of numbers
     dtype = jnp.result_type(x)
     if not jnp.issubdtype(dtype, jnp.inexact):
         dtype = default_float_dtype()

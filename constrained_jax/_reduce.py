@@ -25,11 +25,13 @@ from ._constraints import AbstractConstraint
 from ._custom_types import Args, ScalarLike
 from ._misc import (
     all_finite,
+    check_consistency_tol,
     CONSISTENCY_TOLERANCE,
     default_float_dtype,
     float_tolerance,
     full_precision,
 )
+from ._results import error_if
 from ._solver.saddle_point import solve as solve_saddle_point
 from ._system import LagrangianSystem, off_constraints, PATTERN_MISMATCH_MESSAGE
 
@@ -83,6 +85,8 @@ class Reduction(eqx.Module):
         q, qd = self.lift(s, sd, t, args)
         if consistency_tol is None:
             consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q.dtype)
+        else:
+            consistency_tol = check_consistency_tol(consistency_tol)
         # qddot = d/dt (qdot) along (sdot, sddot, 1).
         _, qdd = jax.jvp(q_dot, (s, sd, t), (sd, sdd, jnp.ones_like(t)))
         kkt = self.full.saddle_point_system(q, qd, t, args)
@@ -93,8 +97,8 @@ class Reduction(eqx.Module):
         # (Each check is attached to `qdd` too: `error_if` on an empty `lam` alone,
         # a system without constraints, would never fire.)
         if kkt.mismatch is not None:
-            lam, qdd = eqx.error_if((lam, qdd), kkt.mismatch, PATTERN_MISMATCH_MESSAGE)
-        lam, qdd = eqx.error_if(
+            lam, qdd = error_if((lam, qdd), kkt.mismatch, PATTERN_MISMATCH_MESSAGE)
+        lam, qdd = error_if(
             (lam, qdd),
             singular,
             "`Reduction.full_multipliers`: the full system's KKT matrix "
@@ -118,7 +122,7 @@ class Reduction(eqx.Module):
         off = off_constraints(self.full, q, qd, t, args, consistency_tol) | jnp.any(
             jnp.abs(acceleration) > consistency_tol * acceleration_scale
         )
-        lam, qdd = eqx.error_if(
+        lam, qdd = error_if(
             (lam, qdd),
             off,
             "`Reduction.full_multipliers`: the lifted motion q = phi(s, t) violates "
@@ -127,7 +131,7 @@ class Reduction(eqx.Module):
             "satisfy the constraints it eliminates, so the reduced motion is not a "
             "motion of the full system. Check `phi` (e.g. the radius of a circle).",
         )
-        lam, _ = eqx.error_if(
+        lam, _ = error_if(
             (lam, qdd),
             jnp.any(jnp.abs(balance) > consistency_tol * balance_scale),
             "`Reduction.full_multipliers`: no multipliers balance the full "
@@ -253,15 +257,17 @@ def linearize(
     system.check(q_eq, qd_eq, t, args)
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q_eq.dtype)
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
     t = jnp.asarray(t, q_eq.dtype)
     finite = all_finite((q_eq, qd_eq, t, args))
-    q_eq, qd_eq = eqx.error_if(
+    q_eq, qd_eq = error_if(
         (q_eq, qd_eq),
         jnp.invert(finite),
         "`linearize`: `q_eq`, `qd_eq`, `t` or `args` contain NaN or inf.",
     )
     off = off_constraints(system, q_eq, qd_eq, t, args, consistency_tol)
-    q_eq, qd_eq = eqx.error_if(
+    q_eq, qd_eq = error_if(
         (q_eq, qd_eq),
         off,
         "`linearize`: the point (q_eq, qd_eq) violates the constraints (G(q_eq, t) "
@@ -278,7 +284,7 @@ def linearize(
         return qdd_, singular
 
     (d_q, d_qd), singular = jax.jacfwd(qdd, argnums=(0, 1), has_aux=True)(q_eq, qd_eq)
-    d_q = eqx.error_if(
+    d_q = error_if(
         d_q,
         singular,
         "`linearize`: the KKT matrix [[M, -A^T], [A, 0]] is singular at (q_eq, qd_eq): "
@@ -292,7 +298,7 @@ def linearize(
     )
     bottom = jnp.concatenate([z_vel.T @ d_q @ z_pos, z_vel.T @ d_qd @ z_vel], 1)
     matrix = jnp.concatenate([top, bottom], 0)
-    matrix = eqx.error_if(
+    matrix = error_if(
         matrix,
         jnp.invert(jnp.all(jnp.isfinite(matrix))),
         "`linearize`: the linearised matrix is not finite (the equations of motion "

@@ -7,6 +7,9 @@ Each member's value is the message the user reads when `throw=True` raises.
 """
 
 import diffrax
+import equinox as eqx
+import jax
+import numpy as np
 
 
 class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
@@ -212,15 +215,39 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
 
 
 def raise_if_failed(sol, throw: bool):
-    """`sol` (any solution with a `result` field), raising at run time where
-    `sol.result` is not successful if `throw`.
+    """`sol` (any solution with a `result` field), raising where `sol.result` is not
+    successful if `throw`.
 
     Applied by each public solve *after* its compiled core (which never sees
     `throw`): so `throw=True` and `throw=False` share one compiled program, and
-    switching between them compiles only this small check. (The check rides on the
-    returned solution: a program that keeps only a derivative drops it, and the NaN
-    derivative of a failed solve is then its refusal.)
+    switching between them compiles only this small check. A concrete result (the
+    solve called outside `jax.jit` and `jax.vmap`) is tested here, on the host, and
+    the error is raised in this call: its traceback leads to the caller's line, not to
+    the call that compiled the program. A traced one is checked by `eqx.error_if`
+    where the program runs (the check rides on the returned solution: a program that
+    keeps only a derivative drops it, and the NaN derivative of a failed solve is
+    then its refusal).
     """
     if not throw:
         return sol
-    return sol.result.error_if(sol, sol.result != RESULTS.successful)
+    result = sol.result
+    if not result.is_traced():
+        failed = np.asarray(result != RESULTS.successful)
+        if failed.ndim == 0:
+            if failed:
+                raise eqx.EquinoxRuntimeError(RESULTS[result])
+            return sol
+    return result.error_if(sol, result != RESULTS.successful)
+
+
+def error_if(x, pred, msg: str):
+    """`eqx.error_if(x, pred, msg)`, except that a concrete `pred` (outside `jax.jit`
+    and `jax.vmap`) is tested here and raised in this call, so that the traceback
+    leads to the current caller. (`eqx.error_if` called eagerly runs a small compiled
+    program that keeps the Python stack of its first trace, and its message shows
+    that stack, the caller that compiled it, on every later failure.)"""
+    if isinstance(pred, jax.core.Tracer):
+        return eqx.error_if(x, pred, msg)
+    if np.any(np.asarray(pred)):
+        raise eqx.EquinoxRuntimeError(msg)
+    return x

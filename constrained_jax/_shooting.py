@@ -148,8 +148,8 @@ def _solve_shooting(
             "the Euler-Lagrange equations are differential-algebraic. Use "
             "`cjax.solve_functional` (the direct method)."
         )
-    check_max_steps(max_steps)
-    check_max_steps(ode_max_steps, "ode_max_steps")
+    max_steps = check_max_steps(max_steps)
+    ode_max_steps = check_max_steps(ode_max_steps, "ode_max_steps")
     discretization = Chebyshev(num_nodes)
     dtype = functional.boundary[0].dtype
     shape = functional.boundary[0].shape

@@ -25,6 +25,7 @@ from ._implicit import nan_derivatives_if_failed
 from ._misc import (
     all_finite,
     as_traced_args,
+    check_consistency_tol,
     check_max_steps,
     CONSISTENCY_TOLERANCE,
     float_tolerance,
@@ -41,7 +42,7 @@ from ._phases import (
     run_contacts,
     signs_agree,
 )
-from ._results import raise_if_failed, RESULTS
+from ._results import error_if, raise_if_failed, RESULTS
 from ._stabilization import AbstractStabilization, project_state, Unstabilized
 from ._system import LagrangianSystem, off_constraints
 from ._vector_field import solve_accelerations
@@ -139,12 +140,14 @@ def consistent_initial_state(
     system.check(q0, qd0, t0, args)
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, q0.dtype)
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
     t0 = jnp.asarray(t0, q0.dtype)
     q, qd = project_state(system, q0, qd0, t0, args, iterations)
     bad = jnp.invert(all_finite((q, qd))) | off_constraints(
         system, q, qd, t0, args, consistency_tol
     )
-    return eqx.error_if(
+    return error_if(
         (q, qd),
         bad,
         "`consistent_initial_state`: the projected state still violates the "
@@ -187,7 +190,8 @@ def simulate(
         [`constrained_jax.consistent_initial_state`][]. `consistency_tol=None`
         (default) follows the dtype of `q0`: `1e-8` in float64, `1000 eps = 1.2e-4`
         in float32. An explicit value below `10 eps` is warned about (round-off
-        alone may exceed it).
+        alone may exceed it); a negative or NaN one is refused (`ValueError`).
+        Lists (`[1.0, 0.0]`) are the arrays they spell.
     - `args`: parameters, passed last to every user function (traced).
     - `solver`: any diffrax ODE solver, or a
         [`constrained_jax.VariationalIntegrator`][] (symplectic, fixed step `dt0`,
@@ -198,7 +202,7 @@ def simulate(
     - `stepsize_controller`, `dt0`, `max_steps`: as in
         `diffrax.diffeqsolve`. `dt0=None` lets an adaptive controller choose.
         `dt0` is traced (another step size reuses the compiled program);
-        `max_steps` is static (it sizes the buffers).
+        `max_steps` is static (it sizes the buffers): a Python or NumPy integer.
         `stepsize_controller=None` (default) is
         `diffrax.PIDController(rtol=tol, atol=tol)` with `tol` following the dtype
         of `q0`: `1e-8` in float64, `100 eps = 1.2e-5` in float32 (where `1e-8`
@@ -282,7 +286,7 @@ def simulate(
         )
     integrate = integrator(solver)
     integrate.check(system, stabilization, dt0, progress_meter)
-    check_max_steps(max_steps)
+    max_steps = check_max_steps(max_steps)
     _check_max_events(system, max_events)
     unilateral = any(c.unilateral for c in system.constraints)
     args = as_traced_args(args)
@@ -443,7 +447,9 @@ def _dtype_defaults(stepsize_controller, consistency_tol, dtype):
             )
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
-    elif isinstance(consistency_tol, (int, float)) and consistency_tol < 10 * eps:
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
+    if isinstance(consistency_tol, float) and consistency_tol < 10 * eps:
         warnings.warn(
             f"`consistency_tol={consistency_tol:g}` is below what {dtype} can check "
             f"(10 eps = {10 * eps:.1e}): a consistent initial state may be rejected. "

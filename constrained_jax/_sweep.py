@@ -29,6 +29,7 @@ import operator
 import os
 import pathlib
 import re
+import socket
 import tempfile
 import time
 import types
@@ -42,7 +43,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._compat import distributed_client, quiet_callback_errors
-from ._misc import progress_bar
+from ._misc import check_signature, progress_bar
 
 
 _FORMAT = "constrained_jax.sweep/1"
@@ -138,8 +139,17 @@ def sweep(
         code, the shapes or a closed-over array changes it, so does upgrading JAX or
         a library `fn` calls into (then the checkpoint is refused). It does not see
         inside Python callbacks (`jax.pure_callback`, `jax.debug.callback`): changing
-        a callback's Python code needs a new folder. One sweep per folder at a
-        time (one process, or the processes of one `jax.distributed` job).
+        a callback's Python code needs a new folder.
+
+    One sweep per folder at a time (one process, or the processes of one
+    `jax.distributed` job): a sweep holds the folder's lock file
+    `sweep.p<process index>.lock` (its process id and host) while it runs, and a
+    second sweep on the same folder is refused with a `ValueError`, before it
+    reads or writes anything there. A lock left by a process that has ended (on this
+    host) is taken over; one left on another host must be deleted by hand. A sweep
+    refused for any reason writes nothing: a folder whose manifest was lost is
+    refused, without a new manifest, if its chunk files carry another sweep's
+    fingerprint.
 
     **Several processes or hosts.** Under `jax.distributed.initialize()` (SLURM,
     Kubernetes, or several processes on one machine), call `sweep` the same way in
@@ -190,7 +200,9 @@ def sweep(
     **Raises:** `ValueError` for leaves that are not arrays or have no leading axis,
     leading axes of different lengths (the message lists each leaf's length), `N =
     0` (nothing to evaluate: filter empty batches out before calling `sweep`),
-    `batch_size < 1`, bad `devices`, or a checkpoint folder from a different sweep.
+    text or object arrays, `batch_size < 1`, bad `devices`, a `fn` that does not take
+    one argument, a checkpoint folder from a different sweep, or one in use by
+    another sweep.
     """
     if jax.process_count() == 1:
         return _sweep(fn, inputs, batch_size, devices, checkpoint, progress, None)
@@ -204,6 +216,7 @@ def sweep(
 
 def _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers):
     """`sweep`; `peers`: the other processes under `jax.distributed`, or `None`."""
+    check_signature(fn, "`fn` of `cjax.sweep`", "fn(inputs)")
     leaves, paths, treedef, n = _check_inputs(inputs)
     batch_size = _check_batch_size(batch_size)
     devices = _check_devices(devices)
@@ -259,13 +272,17 @@ def _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers):
         }
         info = {"batch_size": batch_size, "jax": jax.__version__}
         store = _Checkpoint(pathlib.Path(checkpoint), key, info)
-        for index in range(n_chunks):
-            start, stop = _bounds(index, chunk, n)
-            loaded = store.load(index, start, stop, outputs)
-            if loaded is not None:
-                for out, part in zip(outputs, loaded, strict=True):
-                    out[start:stop] = part
-                done[index] = True
+        try:
+            for index in range(n_chunks):
+                start, stop = _bounds(index, chunk, n)
+                loaded = store.load(index, start, stop, outputs)
+                if loaded is not None:
+                    for out, part in zip(outputs, loaded, strict=True):
+                        out[start:stop] = part
+                    done[index] = True
+        except BaseException:
+            store.close()
+            raise
 
     desc = "cjax.sweep" if processes == 1 else f"cjax.sweep [{me}/{processes}]"
     bar = progress_bar(
@@ -308,6 +325,8 @@ def _sweep(fn, inputs, batch_size, devices, checkpoint, progress, peers):
             peers.collect(store, done, outputs, chunk, n, evaluate, bar)
     finally:
         bar.close()
+        if store is not None:
+            store.close()
     return jax.tree.unflatten(out_treedef, outputs)
 
 
@@ -641,6 +660,14 @@ def _check_inputs(inputs):
                 "over the inputs; wrap lists with `np.asarray` and pass constants to "
                 "`fn` by closure instead."
             )
+        if isinstance(leaf, np.ndarray) and leaf.dtype.kind in "USO":
+            held = "objects" if leaf.dtype.kind == "O" else "text"
+            raise ValueError(
+                f"`sweep`: {name} holds {held} (dtype {leaf.dtype}), which JAX "
+                "cannot trace. Every leaf of `inputs` must be a numeric array; map "
+                "labels to numbers (an index into a "
+                "table `fn` closes over) or loop over them in Python."
+            )
         if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.extended):
             raise ValueError(
                 f"`sweep`: {name} has the extended dtype {leaf.dtype} (typed PRNG "
@@ -891,6 +918,91 @@ def _write_atomically(
         os.close(dir_fd)
 
 
+def _lock_path(folder: pathlib.Path) -> pathlib.Path:
+    """The lock file of this process's sweep in `folder` (one per process index, so
+    that the processes of one `jax.distributed` job share the folder)."""
+    return folder / f"sweep.p{jax.process_index()}.lock"
+
+
+def _lock_holder(path: pathlib.Path) -> dict | None:
+    try:
+        holder = json.loads(path.read_text())
+        return holder if isinstance(holder, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def _holder_gone(path: pathlib.Path, holder: dict | None) -> bool:
+    """Whether the sweep that wrote the lock `path` has certainly ended: its process
+    (on this host) no longer exists. A lock of another host, or of a live process,
+    is held; an unreadable one (its writer killed between creating and writing it)
+    is stale after a minute."""
+    if holder is None:
+        try:
+            return time.time() - path.stat().st_mtime > 60
+        except OSError:
+            return True  # gone meanwhile
+    pid = holder.get("pid")
+    if holder.get("host") != socket.gethostname() or not isinstance(pid, int):
+        return False
+    if os.name != "posix":
+        return False  # no signal 0 to ask whether a process lives
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # it exists (another user's)
+        return False
+    return False
+
+
+def _lock(folder: pathlib.Path) -> pathlib.Path:
+    """Take the folder's lock (`O_CREAT | O_EXCL`: one of two sweeps gets it) with
+    this process's id and host; a lock whose process has ended is taken over. A
+    folder in use by another sweep is refused (`ValueError`), nothing written."""
+    path = _lock_path(folder)
+    record = json.dumps({"pid": os.getpid(), "host": socket.gethostname()})
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            holder = _lock_holder(path)
+            if _holder_gone(path, holder):
+                path.unlink(missing_ok=True)  # stale: its sweep was killed
+                continue
+            who = (
+                "an unknown process"
+                if holder is None
+                else f"process {holder.get('pid')} on {holder.get('host')!r}"
+            )
+            if holder is not None and holder.get("pid") == os.getpid():
+                who = "another sweep of this process"
+            raise ValueError(
+                f"The checkpoint folder {str(folder)!r} is in use by {who} (its lock "
+                f"file {path.name}): two sweeps writing one folder would destroy each "
+                "other's files. Wait for that sweep to finish, or pass another folder "
+                "as `checkpoint=`. If no sweep is running (a process killed on another "
+                f"host), delete {str(path)!r}."
+            ) from None
+        with os.fdopen(fd, "w") as f:
+            f.write(record)
+        return path
+    raise ValueError(
+        f"Could not take the lock {str(path)!r} of the checkpoint folder: another "
+        "sweep keeps taking it. Pass another folder as `checkpoint=`."
+    )
+
+
+def _chunk_fingerprint(path: pathlib.Path) -> str | None:
+    """The sweep fingerprint a chunk file carries, or `None` if it is unreadable."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(data["meta"].tobytes())
+    except Exception:
+        return None
+    return meta.get("fingerprint") if isinstance(meta, dict) else None
+
+
 def _short(value) -> str:
     text = json.dumps(value) if not isinstance(value, str) else value
     return text if len(text) <= 80 else text[:77] + "..."
@@ -911,25 +1023,52 @@ class _Checkpoint:
         self.digest = hashlib.sha256(
             json.dumps(key, sort_keys=True).encode()
         ).hexdigest()
+        # One sweep per folder at a time: the lock before anything is read or
+        # written, so that a refused sweep leaves the folder as it found it.
+        self.lock = _lock(folder)
+        try:
+            self._open(info)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, info: dict) -> None:
+        folder = self.folder
+        manifest = folder / _MANIFEST
+        if not manifest.exists():
+            # A folder whose manifest was lost: its chunk files still name their
+            # sweep. Refused, without writing a manifest, if they name another.
+            for path in sorted(folder.glob("chunk_*.npz")):
+                fingerprint = _chunk_fingerprint(path)
+                if fingerprint is not None and fingerprint != self.digest:
+                    self._refuse(
+                        f"it has no {_MANIFEST}, and {path.name} carries the "
+                        "fingerprint of another sweep"
+                    )
+            text = json.dumps({"key": self.key, "info": info}, indent=1, sort_keys=True)
+            try:  # exclusive: of processes starting together, one writes it
+                _write_atomically(
+                    manifest, lambda f: f.write(text.encode()), exclusive=True
+                )
+            except FileExistsError:
+                self._compare(manifest, info)
+        else:
+            self._compare(manifest, info)
         # Temporary files left by a process killed mid-write: all of them with one
-        # process, only this process's own under `jax.distributed`.
+        # process, only this process's own under `jax.distributed`. (No other sweep
+        # is writing here: this one holds the folder's lock.)
         if jax.process_count() == 1:
             pattern = ".*.tmp"
         else:
             pattern = ".*" + _temporary_suffix(jax.process_index())
         for stale in folder.glob(pattern):
             stale.unlink(missing_ok=True)
-        manifest = folder / _MANIFEST
-        if not manifest.exists():
-            text = json.dumps({"key": key, "info": info}, indent=1, sort_keys=True)
-            try:  # exclusive: of processes starting together, one writes it
-                _write_atomically(
-                    manifest, lambda f: f.write(text.encode()), exclusive=True
-                )
-                return
-            except FileExistsError:
-                pass
-        self._compare(manifest, info)
+
+    def close(self) -> None:
+        """Release the folder's lock (at the end of the sweep, or on a refusal)."""
+        if self.lock is not None:
+            self.lock.unlink(missing_ok=True)
+            self.lock = None
 
     def _refuse(self, why: str):
         raise ValueError(

@@ -27,7 +27,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._constraints import AbstractConstraint
-from ._misc import full_precision, inexact_asarray
+from ._misc import check_signature, full_precision, inexact_asarray
+from ._results import error_if
 from ._solver.automatic import Automatic
 from ._solver.saddle_point import (
     AbstractSaddlePointSolver,
@@ -239,20 +240,25 @@ class LagrangianSystem(eqx.Module):
         *,
         saddle_point_solver: AbstractSaddlePointSolver = Automatic(),
     ):
-        if not callable(lagrangian):
-            raise ValueError("`lagrangian` must be a callable L(q, qd, t, args).")
+        check_signature(lagrangian, "The Lagrangian", "L(q, qd, t, args)")
         if isinstance(constraints, AbstractConstraint):
             constraints = (constraints,)
+        elif callable(constraints) or not isinstance(constraints, Sequence):
+            constraints = (constraints,)  # refused below, with what to do
         constraints = tuple(constraints)
         for c in constraints:
             if not isinstance(c, AbstractConstraint):
+                what = "a function" if callable(c) else f"a {type(c).__name__}"
                 raise ValueError(
-                    "Each constraint must be a `cjax.Holonomic(G)` or "
-                    f"`cjax.Pfaffian(g, h)`, got {type(c).__name__}. Wrap a function "
-                    "G(q, t, args) as `cjax.Holonomic(G)`."
+                    "`constraints` of `cjax.LagrangianSystem` must be constraint "
+                    "objects, `cjax.Holonomic(G)` or `cjax.Pfaffian(g, h)` (or "
+                    f"`cjax.Unilateral(...)`), or a sequence of them; got {what}. Wrap "
+                    "a function G(q, t, args) whose zeros are the constraint as "
+                    "`constraints=cjax.Holonomic(G)`, and the rows g(q, t, args) of "
+                    "`g qdot + h = 0` as `cjax.Pfaffian(g, h)`."
                 )
-        if forces is not None and not callable(forces):
-            raise ValueError("`forces` must be a callable Q(q, qd, t, args) or None.")
+        if forces is not None:
+            check_signature(forces, "`forces`", "Q(q, qd, t, args)")
         self.lagrangian = lagrangian
         self.constraints = constraints
         if not isinstance(saddle_point_solver, AbstractSaddlePointSolver):
@@ -543,10 +549,8 @@ class LagrangianSystem(eqx.Module):
         system = self.saddle_point_system(q, qd, t, args)
         qdd, lam, singular = solve_saddle_point(self.saddle_point_solver, system)
         if system.mismatch is not None:
-            qdd, lam = eqx.error_if(
-                (qdd, lam), system.mismatch, PATTERN_MISMATCH_MESSAGE
-            )
-        qdd, lam = eqx.error_if(
+            qdd, lam = error_if((qdd, lam), system.mismatch, PATTERN_MISMATCH_MESSAGE)
+        qdd, lam = error_if(
             (qdd, lam),
             singular,
             "The KKT matrix [[M, -A^T], [A, 0]] is singular and the equations of "

@@ -82,13 +82,14 @@ from ._implicit import nan_derivatives_if_failed
 from ._kkt import kkt_solve, KKTProblem
 from ._misc import (
     all_finite,
+    check_consistency_tol,
     check_max_steps,
     CONSISTENCY_TOLERANCE,
     default_float_dtype,
     float_tolerance,
     full_precision,
 )
-from ._results import RESULTS
+from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.kkt_solver import AbstractKKTSolver
 from ._system import LagrangianSystem, off_constraints
@@ -498,7 +499,7 @@ def integrate_variational(
             "A variational integrator takes fixed steps: pass the step size, e.g. "
             "`simulate(..., solver=cjax.VariationalIntegrator(), dt0=0.01)`."
         )
-    check_max_steps(max_steps)
+    max_steps = check_max_steps(max_steps)
     q0 = jnp.asarray(q0)
     if not jnp.issubdtype(q0.dtype, jnp.inexact):
         q0 = q0.astype(default_float_dtype())
@@ -518,6 +519,8 @@ def integrate_variational(
         raise ValueError("`t0`, `t1` and `dt0` must be scalars.")
     if consistency_tol is None:
         consistency_tol = float_tolerance(*CONSISTENCY_TOLERANCE, dtype)
+    else:
+        consistency_tol = check_consistency_tol(consistency_tol)
     if isinstance(consistency_tol, (int, float)) and consistency_tol == float("inf"):
         consistent = jnp.asarray(True)  # not tested (`simulate` tests it itself)
     else:
@@ -531,9 +534,7 @@ def integrate_variational(
     sol = nan_derivatives_if_failed(
         sol, (system, q0, qd0, args, t0, t1), sol.result != RESULTS.successful
     )
-    if throw:
-        sol = sol.result.error_if(sol, sol.result != RESULTS.successful)
-    return sol
+    return raise_if_failed(sol, throw)
 
 
 class _Carry(eqx.Module):
