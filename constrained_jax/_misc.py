@@ -136,11 +136,19 @@ def _is_number_list(x) -> bool:
 def lists_as_arrays(tree: PyTree) -> PyTree:
     """`tree` with every (nested) list or tuple of plain numbers turned into a NumPy
     array, as NumPy users expect (`x0=[1.0, 2.0]` is the array, not a pytree of two
-    scalars); lists holding arrays stay pytrees."""
+    scalars); a list of integers is a floating-point array (`x0=[1, 2]`, as SciPy
+    reads it); lists holding arrays stay pytrees."""
+
+    def as_array(x):
+        array = np.asarray(x)
+        if array.dtype.kind in "iu":
+            array = array.astype(default_float_dtype())
+        return array
+
     if _is_number_list(tree):
-        return np.asarray(tree)
+        return as_array(tree)
     return jtu.tree_map(
-        lambda x: np.asarray(x) if _is_number_list(x) else x,
+        lambda x: as_array(x) if _is_number_list(x) else x,
         tree,
         is_leaf=_is_number_list,
     )
