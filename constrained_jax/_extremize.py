@@ -750,7 +750,13 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
     if m:
         jac_h = jax.jacrev(problem.inequalities)(xs, aug)
         jac_g = None if k == 0 else constraint_jacobian(constraints, xs, args)
-        project, free = _tangent_projector(jac_h, sol.strict, jac_g, n, dtype)
+        # Two subspaces (below), one batched eigendecomposition and one batched
+        # Lanczos: one compiled body each.
+        which = jnp.stack([sol.strict, sol.active])
+        bases, frees = jax.vmap(lambda w: _tangent_basis(jac_h, w, jac_g, n, dtype))(
+            which
+        )
+        free = frees[0]
     elif k:
         jac = constraint_jacobian(constraints, xs, args)
         factors = gram_factors(jac)
@@ -763,7 +769,16 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
         return problem.equations(jnp.concatenate([x_, zs[n:]]), aug)[:n]
 
     hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
-    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
+    if m:
+
+        def extremes_on(basis, mask):
+            project = lambda v: basis @ (mask.astype(dtype) * (basis.T @ v))
+            return reduced_hessian_extremes(hvp, project, n, k, dtype)
+
+        both = jax.vmap(extremes_on)(bases, frees)
+        extremes, (lo, hi) = both[0], both[1]
+    else:
+        extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
     kind = _classify(extremes, n, k, dtype)
     if m:
         kind = EXTREMUM.where(jnp.sum(free) == 0, EXTREMUM.isolated, kind)
@@ -777,10 +792,7 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
         # is held at zero, each direction with its negative: curvature of the wrong
         # sign for `sense` there violates the second-order necessary condition, so
         # the point is no optimum, whatever `kind` (degenerate or not) says.
-        project_active, free_active = _tangent_projector(
-            jac_h, sol.active, jac_g, n, dtype
-        )
-        lo, hi = reduced_hessian_extremes(hvp, project_active, n, k, dtype)
+        free_active = frees[1]
         tol = jnp.sqrt(jnp.finfo(dtype).eps) * jnp.maximum(
             1.0, jnp.maximum(jnp.abs(lo), jnp.abs(hi))
         )
@@ -791,11 +803,12 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
     return kind, extremes, jac, factors, wrong_curvature
 
 
-def _tangent_projector(jac_h, which, jac_g, n: int, dtype):
-    """`(project, free)`: the orthogonal projection onto the common null space of
-    the rows of `G` (`jac_g`, or `None`) and the rows `which` of `H`, and the mask of
-    the eigenvectors of their Gram matrix spanning it (the rows normalised; an
-    eigenvalue counts as zero below `1000 n eps` of the largest)."""
+def _tangent_basis(jac_h, which, jac_g, n: int, dtype):
+    """`(vecs, free)`: the eigenvectors of the Gram matrix of the rows of `G`
+    (`jac_g`, or `None`) and the rows `which` of `H` (normalised), and the mask of
+    those spanning the common null space of the rows (an eigenvalue counts as zero
+    below `1000 n eps` of the largest): the projection onto it is
+    `vecs diag(free) vecs^T`."""
     rows = jac_h * which[:, None].astype(dtype)
     if jac_g is not None:
         rows = jnp.concatenate([jac_g, rows])
@@ -804,8 +817,7 @@ def _tangent_projector(jac_h, which, jac_g, n: int, dtype):
     eigs, vecs = jnp.linalg.eigh(rows.T @ rows)
     eps = jnp.finfo(dtype).eps
     free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
-    project = lambda v: vecs @ (free.astype(dtype) * (vecs.T @ v))
-    return project, free
+    return vecs, free
 
 
 def _constraint_statuses(result, kind, g, jac, factors, g0, jac0, xs, x0):

@@ -5,7 +5,8 @@ ran out are each refused by name. Every answer is checked against a closed form 
 a published optimum, with SciPy's SLSQP as a check of the transcription).
 
 - a linear objective over the unit disc (maximize and minimize, from the centre, from
-  a nearby point, from far outside): `(1, 2) / sqrt(5)` and its multiplier;
+  a nearby point, from far outside; batched, in float64 and float32): `(1, 2) /
+  sqrt(5)` and its multiplier;
 - an LP over a polygon and an LP over a box, from inside and from far outside: the
   vertex and its multipliers;
 - a QP from a far infeasible start: the projection onto the disc;
@@ -23,6 +24,7 @@ a published optimum, with SciPy's SLSQP as a check of the transcription).
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -66,6 +68,20 @@ def test_linear_objective_over_the_disc(sense, x0):
         sol.inequality_multipliers, [-side * np.sqrt(5) / 2], rtol=1e-10
     )
     assert sol.kind == (cjax.EXTREMUM.maximum if side > 0 else cjax.EXTREMUM.minimum)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_linear_objective_over_the_disc_batched(dtype):
+    """The same under `jax.vmap` (the centre, where the Newton matrix is singular,
+    in one batch with feasible and far infeasible starts), in float64 and float32."""
+    starts = jnp.array([[0.0, 0.0], [0.1, -0.2], [3.0, 3.0], [-40.0, 25.0]], dtype)
+    sol = jax.vmap(lambda x0: _disc_linear(x0, "maximize"))(starts)
+    assert jnp.all(sol.result == R.successful)
+    assert sol.x.dtype == dtype
+    tol = 1e-12 if dtype == jnp.float64 else 1e-6
+    np.testing.assert_allclose(
+        sol.x, np.tile([1.0, 2.0], (4, 1)) / np.sqrt(5), atol=tol
+    )
 
 
 def _polygon(x, args):
