@@ -113,11 +113,12 @@ class SemismoothNewton(AbstractKKTSolver):
     is regularised by a proximal term centred at the iterate `x_k`: the residual is
     that of extremizing `F - s rho |x - x_k|^2 / 2`, the same at `x_k`, with
     Jacobian `K + s rho I` on the block of `x` (the proximal point method, one
-    Newton step per centre). `rho = min(1, |grad F*|) (1 / max(1, |x|) + 2
-    max(0, -lambda_min(s Hess_x F*)))`, the least eigenvalue estimated by power
-    iteration: it vanishes with the residual, which keeps Newton's local
-    convergence (Li, Fukushima, Qi and Yamashita 2004), and away from the solution
-    it makes the curvature agree with `s`. So a flat objective (a linear one with
+    Newton step per centre). `rho = min(1, |grad F*|) max(0, 1 / max(1, |x|) -
+    2 lambda_min(s Hess_x F*))`, the least eigenvalue estimated by power iteration:
+    zero where the curvature already agrees with `s` by a margin (a plain Newton
+    step), it vanishes with the residual, which keeps Newton's local convergence
+    (Li, Fukushima, Qi and Yamashita 2004), and away from the solution it makes the
+    curvature agree with `s`. So a flat objective (a linear one with
     no active constraint, where `K` is singular and `r` constant in `x`) and an
     iterate where the curvature has the wrong sign (multipliers of the wrong sign,
     a concave objective minimized) still move towards the optimum.
@@ -181,9 +182,11 @@ class SemismoothNewton(AbstractKKTSolver):
         # is flat (a linear objective with no active constraint) `K` is singular and
         # `r` constant in `x`, so that neither Newton nor a line search on `|r|` can
         # move; the proximal step is the step of the regularised Newton method
-        # `(Hess F* + s rho I) dx = -r` that ascends (descends) `F`. `rho =
-        # min(1, |grad F*|) / max(1, |x|)` vanishes with the residual, which keeps
-        # Newton's local convergence (Li, Fukushima, Qi and Yamashita 2004).
+        # `(Hess F* + s rho I) dx = -r` that ascends (descends) `F`. `rho` (see the
+        # class docstring) is zero where the curvature of `F*` in `x` agrees with
+        # `s` by a margin, adds what is missing where it does not, and vanishes
+        # with the residual, which keeps Newton's local convergence (Li, Fukushima,
+        # Qi and Yamashita 2004).
         jac = jax.jacfwd(lambda z_: residual(z_, args))(z)
         if isinstance(residual, KKTResidual):
             signs = residual.proximal_signs(z)
@@ -191,8 +194,8 @@ class SemismoothNewton(AbstractKKTSolver):
             stationarity = jnp.linalg.norm(r[:n])
             x_size = jnp.max(jnp.abs(z[:n]))
             curvature = _least_eigenvalue(residual.sign * jac[:n, :n])
-            rho = jnp.minimum(stationarity, 1.0) * (
-                1 / jnp.maximum(x_size, 1.0) + 2 * jnp.maximum(-curvature, 0.0)
+            rho = jnp.minimum(stationarity, 1.0) * jnp.maximum(
+                1 / jnp.maximum(x_size, 1.0) - 2 * curvature, 0.0
             )
             rho = jnp.where(jnp.isfinite(rho), rho, 0.0)
             proximal = rho * signs
