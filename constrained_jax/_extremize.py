@@ -56,7 +56,7 @@ from ._solver.fallback import Fallback
 from ._solver.kkt_solver import AbstractKKTSolver
 from ._solver.minres import MINRES
 from ._solver.newton import Newton
-from ._solver.semismooth_newton import SemismoothNewton
+from ._solver.semismooth_newton import conjugate_gradient, SemismoothNewton
 
 
 # The default linear solver is chosen by what fits (`default_solver`): dense LU while
@@ -200,9 +200,11 @@ class Extremum(eqx.Module):
         with `G != 0`), `line_search_failed`, `linear_solve_failed` (an iterative
         linear solver did not converge), `nonlinear_max_steps_reached`; with
         inequalities also `infeasible_inequalities` (the solve stopped where some
-        `H_i > 0`), `kkt_conditions_violated` (the iteration stopped but the KKT
-        conditions do not hold to tolerance) and, whenever `sense` is given,
-        `not_an_optimum` (a KKT point whose second-order test contradicts `sense`).
+        `H_i > 0`, at a local minimum of the violation), `kkt_conditions_violated`
+        (the iteration stopped but the KKT conditions do not hold to tolerance),
+        `unbounded_objective` (the iterates ran off while `F` kept improving) and,
+        whenever `sense` is given, `not_an_optimum` (a KKT point whose second-order
+        test contradicts `sense`).
     - `stats`: `num_steps`, `max_steps`, the extreme eigenvalues of the reduced
         Hessian (`reduced_hessian_eigenvalues`, `[min, max]`) and the final KKT
         residual (`kkt_residual`, root mean square).
@@ -441,8 +443,9 @@ def extremize(
     system in `(x, lambda, mu)` is solved by a semismooth Newton method (a dense
     Jacobian by forward-mode autodiff, LU-factored), damped by the natural monotonicity
     test of [`constrained_jax.Newton`][], with a Levenberg-Marquardt step and an Armijo
-    line search on `|r|^2 / 2` where the Newton step fails, from any start, feasible or
-    not (with `mu0 = 0`): [`constrained_jax.SemismoothNewton`][]. `solver` is `None`,
+    line search on `|r|^2 / 2` where the Newton step fails, each step regularised by
+    a proximal term (see [`constrained_jax.SemismoothNewton`][]), from any start,
+    feasible or not (with `mu0 = 0`). `solver` is `None`,
     a `SemismoothNewton` or a [`constrained_jax.Newton`][]: its `rtol`, `atol` give
     the stopping test (as for equalities), its `linear_solver` the backward pass.
     After the iteration the KKT conditions are checked, relative to
@@ -464,9 +467,18 @@ def extremize(
     `EXTREMUM.isolated` (a vertex: first-order conditions with the sign of `mu`
     suffice). A successful point whose `kind` contradicts `sense` (a maximum or a
     saddle when minimizing, a minimum or a saddle when maximizing) is
-    `RESULTS.not_an_optimum`. Newton finds a nearby KKT point, not the best one:
-    from inside the box, minimizing `-x^2` on `[-1, 1]` finds the KKT point `x = 0`
-    (reported `not_an_optimum`), from outside it `x = 1`.
+    `RESULTS.not_an_optimum`, and so is one where the Hessian of `F*` has curvature
+    of the wrong sign for `sense` on the subspace that keeps every active
+    constraint (strictly or weakly) at zero, which lies in the critical cone with
+    each direction's negative (the second-order necessary condition fails).
+    Newton finds a nearby KKT point, not the best one: minimizing `-x^2` on
+    `[-1, 1]` descends to the nearer bound `x = +-1`, except from the KKT point
+    `x = 0` itself (reported `not_an_optimum`). A failed solve whose iterates ran
+    off (`|x - x0| > 1000 max(1, |x0|)`) while `F` kept improving is
+    `RESULTS.unbounded_objective`; one stopped by `max_steps` is
+    `RESULTS.nonlinear_max_steps_reached` unless the iterate is stuck at a local
+    minimum of the violation (checked by a few Levenberg-Marquardt steps on it),
+    which is `RESULTS.infeasible_inequalities`.
 
     Derivatives with respect to `args`, `lower`, `upper` (and arrays `F`, `G`, `H`
     close over) come from the implicit function theorem on the KKT system with the
@@ -609,9 +621,12 @@ def _extremize(
         start_ok & jnp.invert(start_defined), RESULTS.nonfinite_objective, sol.result
     )
     if m:
-        result = _complementarity_statuses(result, sol)
+        stuck = _violation_stationary(
+            problem, constraints_flat, jax.lax.stop_gradient(sol.z)[:n], args, aug
+        )
+        result = _complementarity_statuses(result, sol, stuck)
     xs = jax.lax.stop_gradient(sol.z)[:n]
-    kind, extremes, jac, factors = _second_order(
+    kind, extremes, jac, factors, wrong_curvature = _second_order(
         problem, sol, constraints_flat, args, aug, dtype
     )
     if k and not m:
@@ -619,12 +634,19 @@ def _extremize(
             result, kind, sol.residual[n:], jac, factors, g0, jac0, xs, x_flat
         )
     value = objective_flat(xs, args)
+    if m:
+        result = _unbounded_status(result, value, f0, xs, x_flat, sense)
     result = RESULTS.where(
         (result == RESULTS.successful) & jnp.invert(jnp.isfinite(value)),
         RESULTS.nonfinite_objective,
         result,
     )
     result = _check_sense(result, kind, sense, jnp.array(False))
+    result = RESULTS.where(
+        (result == RESULTS.successful) & wrong_curvature,
+        RESULTS.not_an_optimum,
+        result,
+    )
     failed = result != RESULTS.successful
     kind = EXTREMUM.where(failed, EXTREMUM.unknown, kind)
     # The derivative of a failed solve is NaN (also for failures decided above, after
@@ -690,15 +712,58 @@ def _start(objective, constraints, x, args, multipliers0, m: int):
     return f, lam, g, jac
 
 
-def _complementarity_statuses(result: RESULTS, sol: KKTSolution) -> RESULTS:
-    """A stop anywhere `H > 0` is infeasibility, whatever the iteration said; a
-    "converged" point where the KKT conditions fail is never a success."""
+def _violation_stationary(
+    problem, constraints, x, args, aug, num_steps: int = 20
+) -> Bool[Array, ""]:
+    """Whether the violation `v = (|max(H, 0)|^2 + |G|^2) / 2` stays positive and
+    stationary when minimized from `x`: `num_steps` Levenberg-Marquardt steps on
+    `q = (max(H, 0), G)` (the feasibility restoration of SQP methods), after which
+    `v > 0` and its gradient `A_+^T H_+ + J^T G` is below `0.01 (sum_i H_i+
+    |grad H_i| + sum_j |G_j| |grad G_j|)`, the size its terms would have if they did
+    not cancel. An iteration that stopped where `H > 0` is then stuck at a local
+    minimum of the violation (the mark of an empty feasible set); otherwise a point
+    with less violation is within reach, and it ran out of steps."""
+
+    def parts(x_):
+        h = jnp.maximum(problem.inequalities(x_, aug), 0.0)
+        if constraints is None:
+            return h
+        return jnp.concatenate([h, constraints(x_, args)])
+
+    def measure(x_):
+        values = parts(x_)
+        rows = jax.jacrev(parts)(x_)
+        gradient = rows.T @ values
+        size = jnp.sum(jnp.abs(values) * jnp.linalg.norm(rows, axis=1))
+        return values, rows, gradient, size
+
+    def restore(_, x_):
+        values, rows, gradient, _ = measure(x_)
+        gram = rows.T @ rows
+        shift = 1e-8 * jnp.maximum(jnp.max(jnp.abs(jnp.diag(gram))), 1.0)
+        dx = conjugate_gradient(gram, shift, -gradient)
+        x_new = x_ + dx
+        better = jnp.sum(parts(x_new) ** 2) < jnp.sum(values**2)
+        return jnp.where(better & jnp.all(jnp.isfinite(x_new)), x_new, x_)
+
+    x = jax.lax.fori_loop(0, num_steps, restore, x)
+    values, _, gradient, size = measure(x)
+    return (jnp.linalg.norm(gradient) <= 0.01 * size) & jnp.any(values != 0)
+
+
+def _complementarity_statuses(result: RESULTS, sol: KKTSolution, stuck) -> RESULTS:
+    """A stop where `H > 0` that the iteration could not leave is infeasibility; a
+    stop where the step budget ran out is `nonlinear_max_steps_reached` unless the
+    iterate is `stuck` at a stationary point of the violation (the iterate of a
+    feasible problem may still violate `H` when the budget runs out); a "converged"
+    point where the KKT conditions fail is never a success."""
     tol = sol.stats["kkt_tolerance"]
     infeasible = sol.infeasibility > tol
     result = RESULTS.where(
         (result != RESULTS.successful)
         & (result != RESULTS.invalid_input)
         & (result != RESULTS.nonfinite_objective)
+        & ((result != RESULTS.nonlinear_max_steps_reached) | stuck)
         & infeasible,
         RESULTS.infeasible_inequalities,
         result,
@@ -714,6 +779,27 @@ def _complementarity_statuses(result: RESULTS, sol: KKTSolution) -> RESULTS:
     )
 
 
+def _unbounded_status(result, value, f0, x, x0, sense) -> RESULTS:
+    """`RESULTS.unbounded_objective` for a failed solve whose iterates ran off
+    (`|x - x0| > 1000 max(1, |x0|)`, or overflowed) while `F` improved in the
+    direction of `sense`: the mark of an objective with no optimum on the feasible
+    set (maximizing a convex function), not of an infeasible or badly started
+    problem."""
+    sign = 1.0 if sense == "minimize" else -1.0
+    distance = jnp.linalg.norm(x - x0)
+    ran_off = jnp.invert(distance <= 1000 * jnp.maximum(1.0, jnp.linalg.norm(x0)))
+    improved = (sign * (value - f0) < 0) | (sign * value == -jnp.inf)
+    return RESULTS.where(
+        (result != RESULTS.successful)
+        & (result != RESULTS.invalid_input)
+        & jnp.isfinite(f0)
+        & ran_off
+        & improved,
+        RESULTS.unbounded_objective,
+        result,
+    )
+
+
 def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug, dtype):
     """`(kind, extremes, J, factors of J J^T)`: the extreme eigenvalues of the Hessian
     of `F*` on the tangent space of `G` (and, with inequalities, of the strictly
@@ -723,18 +809,15 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
     xs = zs[:n]
     jac = factors = None
     if m:
-        # The rows of G and the strictly active H, normalised; the tangent space is
-        # the eigenspace of their Gram matrix at zero.
-        rows = jax.jacrev(problem.inequalities)(xs, aug)
-        rows = rows * sol.strict[:, None].astype(dtype)
-        if k > 0:
-            rows = jnp.concatenate([constraint_jacobian(constraints, xs, args), rows])
-        norms = jnp.linalg.norm(rows, axis=1, keepdims=True)
-        rows = rows / jnp.where(norms > 0, norms, 1.0)
-        eigs, vecs = jnp.linalg.eigh(rows.T @ rows)
-        eps = jnp.finfo(dtype).eps
-        free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
-        project = lambda v: vecs @ (free.astype(dtype) * (vecs.T @ v))
+        jac_h = jax.jacrev(problem.inequalities)(xs, aug)
+        jac_g = None if k == 0 else constraint_jacobian(constraints, xs, args)
+        # Two subspaces (below), one batched eigendecomposition and one batched
+        # Lanczos: one compiled body each.
+        which = jnp.stack([sol.strict, sol.active])
+        bases, frees = jax.vmap(lambda w: _tangent_basis(jac_h, w, jac_g, n, dtype))(
+            which
+        )
+        free = frees[0]
     elif k:
         jac = constraint_jacobian(constraints, xs, args)
         factors = gram_factors(jac)
@@ -747,7 +830,16 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
         return problem.equations(jnp.concatenate([x_, zs[n:]]), aug)[:n]
 
     hvp = lambda v: jax.jvp(grad_star, (xs,), (v,))[1]
-    extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
+    if m:
+
+        def extremes_on(basis, mask):
+            project = lambda v: basis @ (mask.astype(dtype) * (basis.T @ v))
+            return reduced_hessian_extremes(hvp, project, n, k, dtype)
+
+        both = jax.vmap(extremes_on)(bases, frees)
+        extremes, (lo, hi) = both[0], both[1]
+    else:
+        extremes = reduced_hessian_extremes(hvp, project, n, k, dtype)
     kind = _classify(extremes, n, k, dtype)
     if m:
         kind = EXTREMUM.where(jnp.sum(free) == 0, EXTREMUM.isolated, kind)
@@ -757,7 +849,36 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
         kind = EXTREMUM.where(
             weakly & (kind == EXTREMUM.saddle), EXTREMUM.degenerate, kind
         )
-    return kind, extremes, jac, factors
+        # The critical cone contains the subspace on which every active H_i (and G)
+        # is held at zero, each direction with its negative: curvature of the wrong
+        # sign for `sense` there violates the second-order necessary condition, so
+        # the point is no optimum, whatever `kind` (degenerate or not) says.
+        free_active = frees[1]
+        tol = jnp.sqrt(jnp.finfo(dtype).eps) * jnp.maximum(
+            1.0, jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+        )
+        wrong = (lo < -tol) if problem.sign > 0 else (hi > tol)
+        wrong_curvature = wrong & (jnp.sum(free_active) > 0)
+    else:
+        wrong_curvature = jnp.array(False)
+    return kind, extremes, jac, factors, wrong_curvature
+
+
+def _tangent_basis(jac_h, which, jac_g, n: int, dtype):
+    """`(vecs, free)`: the eigenvectors of the Gram matrix of the rows of `G`
+    (`jac_g`, or `None`) and the rows `which` of `H` (normalised), and the mask of
+    those spanning the common null space of the rows (an eigenvalue counts as zero
+    below `1000 n eps` of the largest): the projection onto it is
+    `vecs diag(free) vecs^T`."""
+    rows = jac_h * which[:, None].astype(dtype)
+    if jac_g is not None:
+        rows = jnp.concatenate([jac_g, rows])
+    norms = jnp.linalg.norm(rows, axis=1, keepdims=True)
+    rows = rows / jnp.where(norms > 0, norms, 1.0)
+    eigs, vecs = jnp.linalg.eigh(rows.T @ rows)
+    eps = jnp.finfo(dtype).eps
+    free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
+    return vecs, free
 
 
 def _constraint_statuses(result, kind, g, jac, factors, g0, jac0, xs, x0):

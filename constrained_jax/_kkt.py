@@ -42,7 +42,7 @@ from ._inequalities import complementarity_check, fischer_burmeister
 from ._misc import check_max_steps
 from ._results import RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve
-from ._solver.kkt_solver import AbstractKKTSolver, iterate
+from ._solver.kkt_solver import AbstractKKTSolver, iterate, KKTResidual
 
 
 # ---------------------------------------------------------------------------------
@@ -335,7 +335,11 @@ def _primal(inputs):
         return iterate(solver, residual, z_start, args, max_steps, ok, unrolled)
 
     if strategy is None:
-        z, result, stats = solve(problem.residual, z0, start_ok)
+        residual = problem.residual
+        if problem.m:
+            # The layout lets the semismooth solver regularise its steps.
+            residual = KKTResidual(residual, problem.n, problem.sign)
+        z, result, stats = solve(residual, z0, start_ok)
     else:
         z, result, stats = strategy(solve, problem.residual, z0, args, start_ok)
     if problem.m:

@@ -204,13 +204,22 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "(`sol.stats['kkt_tolerance']`, relative). The problem may be badly scaled or "
         "degenerate: rescale x or H, or start elsewhere."
     )
+    unbounded_objective = (
+        "`extremize` with inequalities: the objective has no optimum in the direction "
+        "of the iterates: they ran off (more than 1000 times the size of `x0` from "
+        "it) while F kept improving in the direction of `sense`, as when maximizing a "
+        "convex function. Check `sense`, and bound the unknowns (`lower`, `upper`) or "
+        "add the constraints that make the feasible set bounded."
+    )
     not_an_optimum = (
         "`extremize` with `sense`: the point found satisfies the first-order (KKT) "
         "conditions, but its second-order test (`sol.kind`, the Hessian of "
         "F + lambda.G + mu.H on the tangent space of the equality constraints and the "
         "strictly active inequalities) contradicts `sense`: a maximum or a saddle "
-        "when minimizing, a minimum or a saddle when maximizing. Start from another "
-        "`x0`."
+        "when minimizing, a minimum or a saddle when maximizing; or, with "
+        "inequalities, the Hessian has curvature of the wrong sign for `sense` on "
+        "the subspace that keeps every active constraint at zero (no local optimum "
+        "there, even where `kind` is inconclusive). Start from another `x0`."
     )
 
 

@@ -500,26 +500,27 @@ def test_scalar_inequality_and_pytree_bounds():
 
 def test_not_an_optimum_is_not_a_success():
     """Minimizing `-x^2` on [-1, 1]: x = 0 satisfies the KKT conditions (mu = 0)
-    but is a maximum, and Newton finds it from any start inside the box (the model
-    of an inactive bound is no bound): never reported as a successful minimum. From
-    outside the box the bound is active from the start and Newton stops at x = 1."""
+    but is a maximum: started there, the solve stays and is never reported as a
+    successful minimum. From anywhere else, inside the box or outside, the
+    regularised step descends to the nearer bound, x = sign(x0), a local minimum
+    with mu = 2 on that bound."""
 
     def f(x, args):
         return -jnp.sum(x**2)
 
-    for x0 in (0.0, 0.9):
+    sol = cjax.extremize(
+        f, jnp.array([0.0]), lower=-1.0, upper=1.0, sense="minimize", throw=False
+    )
+    assert sol.result == cjax.RESULTS.not_an_optimum
+    assert sol.kind == cjax.EXTREMUM.unknown
+    for x0, mu in ((0.9, [0.0, 2.0]), (1.5, [0.0, 2.0]), (-0.4, [2.0, 0.0])):
         sol = cjax.extremize(
             f, jnp.array([x0]), lower=-1.0, upper=1.0, sense="minimize", throw=False
         )
-        assert sol.result == cjax.RESULTS.not_an_optimum
-        assert sol.kind == cjax.EXTREMUM.unknown
-    sol = cjax.extremize(
-        f, jnp.array([1.5]), lower=-1.0, upper=1.0, sense="minimize", throw=False
-    )
-    assert sol.result == cjax.RESULTS.successful
-    np.testing.assert_allclose(sol.x, [1.0], atol=1e-12)
-    np.testing.assert_allclose(sol.inequality_multipliers, [0.0, 2.0], atol=1e-10)
-    assert sol.kind == cjax.EXTREMUM.isolated
+        assert sol.result == cjax.RESULTS.successful
+        np.testing.assert_allclose(sol.x, [np.sign(x0)], atol=1e-12)
+        np.testing.assert_allclose(sol.inequality_multipliers, mu, atol=1e-10)
+        assert sol.kind == cjax.EXTREMUM.isolated
 
 
 def test_sense_without_inequalities_checks_the_kind():

@@ -21,6 +21,31 @@ from .._results import RESULTS
 _ResidualFn = Callable[[Float[Array, " m"], PyTree], Float[Array, " m"]]
 
 
+class KKTResidual(eqx.Module):
+    """A KKT residual `(grad F*, G, phi)` of unknowns `z = (x, lambda, mu)` together
+    with the layout a regularised step needs: `n` unknowns `x` first, and the sense
+    `sign` (`+1` to minimize, `-1` to maximize) in which the stationarity rows are
+    the gradient of the objective.
+
+    Called like the residual itself; a solver that does not use the layout sees a
+    plain residual function.
+    """
+
+    fn: _ResidualFn
+    n: int = eqx.field(static=True)
+    sign: float = eqx.field(static=True)
+
+    def __call__(self, z, args):
+        return self.fn(z, args)
+
+    def proximal_signs(self, z: Float[Array, " m"]) -> Float[Array, " m"]:
+        """`sign` on the rows of `x`, zero on those of the multipliers: the diagonal
+        `D` of the proximal term `rho D (z - z_c)` (the gradient of
+        `sign rho |x - x_c|^2 / 2`), which adds `rho` to the curvature of the
+        objective in the direction of `sense`."""
+        return jnp.zeros_like(z).at[: self.n].set(self.sign)
+
+
 class AbstractKKTSolver(eqx.Module):
     """A method for finding a root of a KKT residual (for extremization and
     functionals a symmetric one: the Jacobian is the KKT matrix).

@@ -11,10 +11,10 @@ from jaxtyping import Array, Bool
 
 from .._results import RESULTS
 from .dense_lu import DenseLU
-from .kkt_solver import AbstractKKTSolver
+from .kkt_solver import AbstractKKTSolver, KKTResidual
 
 
-def _conjugate_gradient(matrix, shift, rhs):
+def conjugate_gradient(matrix, shift, rhs):
     """Solve `(matrix + shift I) d = rhs` (symmetric positive definite) by conjugate
     gradients from `d = 0`, at most `len(rhs)` steps, to a relative residual of
     `sqrt(eps)`.
@@ -57,6 +57,29 @@ def _conjugate_gradient(matrix, shift, rhs):
     return d
 
 
+def _least_eigenvalue(matrix, num_steps: int = 32):
+    """An estimate of the least eigenvalue of the symmetric part of `matrix`, by
+    power iteration on `L I - A` (`L = |A|_inf`, a bound on the spectral radius,
+    so that `L I - A` is positive semidefinite), from a fixed start. Matrix-vector
+    products only (no second LAPACK call in the step, see `conjugate_gradient`).
+    The Rayleigh quotient bounds the least eigenvalue from above: an estimate that
+    errs on the side of less regularisation, which the globalisation then guards."""
+    a = 0.5 * (matrix + matrix.T)
+    a = jnp.where(jnp.isfinite(a), a, 0.0)
+    size = a.shape[0]
+    bound = jnp.max(jnp.sum(jnp.abs(a), axis=1))
+    v = 1.0 + jnp.arange(size, dtype=a.dtype) / size
+    v = v / jnp.linalg.norm(v)
+
+    def body(_, v):
+        w = bound * v - a @ v
+        norm = jnp.linalg.norm(w)
+        return jnp.where(norm > 0, w / jnp.where(norm > 0, norm, 1.0), v)
+
+    v = lax.fori_loop(0, num_steps, body, v)
+    return jnp.dot(v, a @ v)
+
+
 class _State(eqx.Module):
     done: Bool[Array, ""]
     result: RESULTS
@@ -85,6 +108,21 @@ class SemismoothNewton(AbstractKKTSolver):
     is continuously differentiable for this residual and the step descends it
     whenever `grad Psi != 0` (De Luca, Facchinei and Kanzow 1996).
 
+    On the KKT residual of [`constrained_jax.extremize`][] (whose layout, `n`
+    unknowns `x` and the sense `s`, the solve passes in a `KKTResidual`) every step
+    is regularised by a proximal term centred at the iterate `x_k`: the residual is
+    that of extremizing `F - s rho |x - x_k|^2 / 2`, the same at `x_k`, with
+    Jacobian `K + s rho I` on the block of `x` (the proximal point method, one
+    Newton step per centre). `rho = min(1, |grad F*|) max(0, 1 / max(1, |x|) -
+    2 lambda_min(s Hess_x F*))`, the least eigenvalue estimated by power iteration:
+    zero where the curvature already agrees with `s` by a margin (a plain Newton
+    step), it vanishes with the residual, which keeps Newton's local convergence
+    (Li, Fukushima, Qi and Yamashita 2004), and away from the solution it makes the
+    curvature agree with `s`. So a flat objective (a linear one with
+    no active constraint, where `K` is singular and `r` constant in `x`) and an
+    iterate where the curvature has the wrong sign (multipliers of the wrong sign,
+    a concave objective minimized) still move towards the optimum.
+
     Converged when a full Newton step is within tolerance (scaled norm below 1); the
     step is then taken. Tolerances below `100 eps` of the dtype are raised to it.
     A step that cannot be taken stops the iteration with `RESULTS.line_search_failed`
@@ -100,7 +138,11 @@ class SemismoothNewton(AbstractKKTSolver):
     Math. Programming 58 (1993) 353-367; T. De Luca, F. Facchinei and C. Kanzow, *A
     semismooth equation approach to the solution of nonlinear complementarity
     problems*, Math. Programming 75 (1996) 407-439; P. Deuflhard, *Newton Methods
-    for Nonlinear Problems*, Springer (2004), section 3.3.
+    for Nonlinear Problems*, Springer (2004), section 3.3; D.-H. Li, M. Fukushima,
+    L. Qi and N. Yamashita, *Regularized Newton methods for convex minimization
+    problems with singular solutions*, Comput. Optim. Appl. 28 (2004) 131-147;
+    R. T. Rockafellar, *Monotone operators and the proximal point algorithm*, SIAM
+    J. Control Optim. 14 (1976) 877-898.
     """
 
     rtol: float = 1e-10
@@ -133,9 +175,34 @@ class SemismoothNewton(AbstractKKTSolver):
         floor = 100 * eps
         rtol = jnp.maximum(jnp.asarray(self.rtol, dtype), floor)
         atol = jnp.maximum(jnp.asarray(self.atol, dtype), floor)
-        res = lambda z_: residual(z_, args)
-        r = res(z)
-        jac = jax.jacfwd(res)(z)
+        r = residual(z, args)
+        # The proximal (regularised) residual, centred at this iterate: the KKT
+        # residual of extremizing `F - s rho |x - x_k|^2 / 2` instead (the proximal
+        # point method), equal to `r` at `z` and with Jacobian `K + rho D`. Where `F`
+        # is flat (a linear objective with no active constraint) `K` is singular and
+        # `r` constant in `x`, so that neither Newton nor a line search on `|r|` can
+        # move; the proximal step is the step of the regularised Newton method
+        # `(Hess F* + s rho I) dx = -r` that ascends (descends) `F`. `rho` (see the
+        # class docstring) is zero where the curvature of `F*` in `x` agrees with
+        # `s` by a margin, adds what is missing where it does not, and vanishes
+        # with the residual, which keeps Newton's local convergence (Li, Fukushima,
+        # Qi and Yamashita 2004).
+        jac = jax.jacfwd(lambda z_: residual(z_, args))(z)
+        if isinstance(residual, KKTResidual):
+            signs = residual.proximal_signs(z)
+            n = residual.n
+            stationarity = jnp.linalg.norm(r[:n])
+            x_size = jnp.max(jnp.abs(z[:n]))
+            curvature = _least_eigenvalue(residual.sign * jac[:n, :n])
+            rho = jnp.minimum(stationarity, 1.0) * jnp.maximum(
+                1 / jnp.maximum(x_size, 1.0) - 2 * curvature, 0.0
+            )
+            rho = jnp.where(jnp.isfinite(rho), rho, 0.0)
+            proximal = rho * signs
+        else:
+            proximal = jnp.zeros_like(z)
+        res = lambda z_: residual(z_, args) + proximal * (z_ - z)
+        jac = jac + jnp.diag(proximal)
         finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(jac))
         # The merit function of the fallback weighs each row of `r` by the
         # reciprocal of its row of the Jacobian (max-norm): stationarity (in the
@@ -197,7 +264,7 @@ class SemismoothNewton(AbstractKKTSolver):
             jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
         )
         nu = jnp.maximum(nu, 1e3 * eps * jnp.max(jnp.abs(jtj)))
-        dz_lm = _conjugate_gradient(
+        dz_lm = conjugate_gradient(
             jnp.where(finite, jtj, 0.0), jnp.where(finite, nu, 1.0), -grad_psi
         )
         dz_lm = jnp.where(jnp.all(jnp.isfinite(dz_lm)), dz_lm, 0.0)
