@@ -1082,11 +1082,14 @@ def _solve_functional(
     if user_start:
         line = _line(problem)
         base = jnp.concatenate([line[:1], guess[1:-1], line[-1:]], axis=0)
-        base = jnp.where(jnp.all(jnp.isfinite(base)), base, line)
+        finite = jnp.all(jnp.isfinite(base))
+        base = jnp.where(finite, base, line)
         zero_offset = jnp.zeros((k,), dtype)
         moved, start_found = _feasible_start(
             _stop_gradient(full_args), zero_offset, base
         )
+        # A start that is not finite stays as it is: `RESULTS.invalid_input`.
+        start_found = start_found & finite
         base = jax.lax.stop_gradient(base)
         guess = jnp.where(start_found, moved, guess)
     x0 = guess[1:-1].reshape(-1)
