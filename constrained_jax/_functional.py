@@ -630,24 +630,29 @@ def _feasible_start(full_args, offset, base=None):
         1 / jnp.arange(1, num_modes + 1, dtype=dtype)[:, None], (num_modes, n)
     )
     starts = amplitude * jnp.stack([first, -first, generic, -generic]).reshape(4, -1)
-    if base is not None:
-        starts = jnp.concatenate([jnp.zeros_like(starts[:1]), starts])
-    u, feasible, value, infeasibility = jax.vmap(search)(starts)
-    value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
-    infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
-    i0 = 0 if base is None else 1
-    best = jnp.where(
-        jnp.any(feasible[i0 : i0 + 2]),
-        i0 + jnp.argmin(value[i0 : i0 + 2]),
-        jnp.where(
-            jnp.any(feasible[i0 + 2 :]),
-            i0 + 2 + jnp.argmin(value[i0 + 2 :]),
-            jnp.argmin(infeasibility),
-        ),
-    )
-    if base is not None:
-        best = jnp.where(feasible[0], 0, best)
-    return modes.values(u[best]), feasible[best]
+
+    def from_modes():
+        u, feasible, value, infeasibility = jax.vmap(search)(starts)
+        value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
+        infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
+        best = jnp.where(
+            jnp.any(feasible[:2]),
+            jnp.argmin(value[:2]),
+            jnp.where(
+                jnp.any(feasible[2:]),
+                2 + jnp.argmin(value[2:]),
+                jnp.argmin(infeasibility),
+            ),
+        )
+        return u[best], feasible[best]
+
+    if base is None:
+        u, feasible = from_modes()
+    else:
+        # The base itself first; the finite amplitudes only where that fails.
+        u0, feasible0, _, _ = search(jnp.zeros_like(starts[0]))
+        u, feasible = jax.lax.cond(feasible0, lambda: (u0, feasible0), from_modes)
+    return modes.values(u), feasible
 
 
 def _start_multipliers(x_flat, full_args, num_holonomic_rows):
@@ -1178,12 +1183,16 @@ def _solve_functional(
         # Dependent integral constraints (the same one twice): their Jacobian has
         # lost rank wherever they hold, and the KKT matrix is singular with them
         # (a linear solver may report that as a singular matrix, a failed line
-        # search or a Krylov failure). Judged where the solve stopped, only after
-        # a failure.
+        # search or a Krylov failure, after which the iterate may have left the
+        # constraints). Judged at the start and where the solve stopped, only
+        # after a failure.
+        points = jnp.stack([x_safe, jax.lax.stop_gradient(z[:num_unknowns])])
         dependent = jax.lax.cond(
             (result != RESULTS.successful) & start_ok & start_found,
-            lambda: _dependent_integral_constraints(
-                jax.lax.stop_gradient(z[:num_unknowns]), _stop_gradient(full_args)
+            lambda: jnp.any(
+                jax.vmap(_dependent_integral_constraints, in_axes=(0, None))(
+                    points, _stop_gradient(full_args)
+                )
             ),
             lambda: jnp.array(False),
         )
