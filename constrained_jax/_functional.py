@@ -863,7 +863,10 @@ def solve_functional(
     - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
         or the values at the nodes, shape `(N,)` or `(N, n)`. Newton's method finds
         the extremal nearest to it. By default the straight line between the end
-        values; with integral constraints, the line corrected in a few smooth modes
+        values (without integral constraints, straight in the discretization's
+        `start_parameter`: in the graded variable on a [`constrained_jax.Graded`][]
+        grid, so that it leaves a singular end steeply); with integral
+        constraints, the line corrected in a few smooth modes
         `sin(j pi s)` until it satisfies them (of the candidates, the one with the
         lower `F`: the default start looks for the *minimizing* extremal; for a
         functional to be maximised, such as Dido's area, pass `y0`). From the
