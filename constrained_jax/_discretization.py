@@ -143,6 +143,22 @@ class AbstractDiscretization(eqx.Module):
         """The relative tolerance on `error_estimate` (relative to `max |y|`) used by
         [`constrained_jax.solve_functional`][] when the caller gives none."""
 
+    def roundoff_rtol(self, dtype) -> float:
+        """The level, relative to `max |y|`, that `error_estimate` may report for a
+        solution resolved to round-off in `dtype` (its round-off plateau).
+        [`constrained_jax.solve_functional`][] never sets its default tolerance
+        below it, so that more nodes never turn a resolved solution into a refusal.
+        By default `0`: an estimate whose round-off stays below `default_rtol`."""
+        del dtype
+        return 0.0
+
+    def start_parameter(self, interval: Interval) -> Float[Array, " N"]:
+        """`s` in `[0, 1]` at the nodes: the variable in which the default start of
+        [`constrained_jax.solve_functional`][] is a straight line,
+        `y = yL + s (yR - yL)`. By default the position, `(x - xL) / (xR - xL)`."""
+        x = self.nodes(interval)
+        return (x - x[0]) / (x[-1] - x[0])
+
     def nodes(self, interval: Interval) -> Float[Array, " N"]:
         """The nodes on `[xL, xR]`: sorted, and inside it also after rounding (the
         last node of `xL + (xR - xL) * 1` is `xR + 1 ULP` for some ends, e.g.
@@ -513,7 +529,8 @@ class Chebyshev(AbstractDiscretization):
         counts as `N - 2` coefficients of its size, `4 E_{N-2} (N - 2)`; the
         estimate never exceeds `max |c_k|`, the size of the function. A
         tail already at round-off (`E_{N-2} <= N^2 eps max |c_k|`, the conditioning
-        of spectral differentiation) gives that round-off level.
+        of spectral differentiation) gives that round-off level: it grows like
+        `N^2`, and the default tolerance is floored there (`roundoff_rtol`).
         """
         n = self.num_nodes
         dtype = values.dtype
@@ -541,6 +558,13 @@ class Chebyshev(AbstractDiscretization):
         84 on: a tail that has not started to fall is refused, a convergence study at
         few nodes is not."""
         return max(10.0 ** (-(self.num_nodes - 4) / 8), 1e-10)
+
+    def roundoff_rtol(self, dtype) -> float:
+        """`2 N^2 eps`: the round-off level `N^2 eps max |c_k|` of `error_estimate`,
+        relative to `max |y|` (`|c_k| <= 2 max |y|` for the Chebyshev coefficients of
+        the interpolant through the values). It passes `1e-10` in float64 from about
+        `N = 480` on."""
+        return 2.0 * self.num_nodes**2 * float(jnp.finfo(dtype).eps)
 
 
 Chebyshev.__init__.__doc__ = """**Arguments:**
@@ -805,6 +829,18 @@ class Graded(AbstractDiscretization):
     @property
     def default_rtol(self) -> float:
         return self.discretization.default_rtol
+
+    def roundoff_rtol(self, dtype) -> float:
+        return self.discretization.roundoff_rtol(dtype)
+
+    def start_parameter(self, interval):
+        """The graded variable `s` (`x = xL + (xR - xL) phi(s)`): a default start
+        straight in it leaves a graded end like `y ~ (x - xL)^(1/p)`, steeply, as
+        the singular solutions a grading is for do (a vertical tangent). The
+        straight line in `x` creeps along `y = yL` there, where an integrand
+        singular at the end value (the brachistochrone's `1/sqrt(-y)`) makes the
+        KKT matrix numerically singular."""
+        return self.discretization.start_parameter(interval)
 
     # The map s -> phi(s) on [0, 1], its derivative, and its inverse.
     def _phi(self, s):

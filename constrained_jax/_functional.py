@@ -449,32 +449,39 @@ def _stop_gradient(tree):
     )
 
 
-def _line(problem):
-    """The straight line between the end values at the nodes, shape `(N, n)`."""
-    nodes = problem.discretization.nodes(problem.functional.interval)
+def _line(problem, straight_in=None):
+    """The straight line between the end values at the nodes, shape `(N, n)`; with
+    `straight_in`, a discretization, straight in its `start_parameter` instead of
+    in `x`."""
+    interval = problem.functional.interval
+    if straight_in is None:
+        nodes = problem.discretization.nodes(interval)
+        s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
+    else:
+        s = straight_in.start_parameter(interval)
     yl, yr = problem.functional.boundary
     n = problem.functional.num_components
-    s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
     return yl.reshape(1, n) + s[:, None] * (yr - yl).reshape(1, n)
 
 
 class _Modes(eqx.Module):
-    """The straight line corrected in smooth modes: `line + sum_j u_j sin(j pi s) /
-    j^2` in every function, and the integral residuals `int N - C + offset` as
-    functions of the amplitudes `u` (shape `(J n,)`, mode-major)."""
+    """A base curve (the straight line, or the user's start) corrected in smooth
+    modes: `base + sum_j u_j sin(j pi s) / j^2` in every function, and the integral
+    residuals `int N - C + offset` as functions of the amplitudes `u` (shape
+    `(J n,)`, mode-major). The modes vanish at the ends: the end values stay."""
 
     full_args: Any
     offset: Array
     line: Array
     basis: Array
 
-    def __init__(self, full_args, offset):
+    def __init__(self, full_args, offset, base=None):
         problem, _ = full_args
         functional = problem.functional
         k = len(functional.integral_constraints)
         self.full_args = full_args
         self.offset = offset
-        self.line = _line(problem)
+        self.line = _line(problem) if base is None else base
         nodes = problem.discretization.nodes(functional.interval)
         dtype = self.line.dtype
         s = (nodes - nodes[0]) / (nodes[-1] - nodes[0])
@@ -534,9 +541,37 @@ def _degenerate_at_line(full_args):
     return jnp.any(flat & met)
 
 
-def _feasible_start(full_args, offset):
+def _dependent_integral_constraints(x_flat, full_args):
+    """Whether the gradients of the integral constraints at `x_flat` are linearly
+    dependent while the constraints hold (to `sqrt(eps)` of their scale): the
+    smallest eigenvalue of their Gram matrix, normalised to a unit diagonal, is
+    below `sqrt(eps)` (a zero gradient counts as dependent)."""
+    problem, user_args = full_args
+    functional = problem.functional
+    dtype = x_flat.dtype
+    eps = jnp.finfo(dtype).eps
+    r = _integral_constraints(x_flat, full_args)
+    targets = jnp.stack(
+        [c.target(user_args, dtype) for c in functional.integral_constraints]
+    )
+    met = jnp.all(
+        jnp.abs(r) <= jnp.sqrt(eps) * (jnp.abs(targets) + jnp.abs(r + targets) + 1)
+    )
+    jac = jax.jacrev(_integral_constraints)(x_flat, full_args)
+    gram = jac @ jac.T
+    d = jnp.sqrt(jnp.diagonal(gram))
+    zero = jnp.any(d <= eps * jnp.max(d))
+    safe = jnp.where(d > 0, d, 1.0)
+    smallest = jnp.linalg.eigvalsh(gram / (safe[:, None] * safe[None, :]))[0]
+    return met & jnp.all(jnp.isfinite(gram)) & (zero | (smallest <= jnp.sqrt(eps)))
+
+
+def _feasible_start(full_args, offset, base=None):
     """The default start: the straight line, corrected to satisfy the integral
-    constraints `int N_j dx = C_j - offset_j`.
+    constraints `int N_j dx = C_j - offset_j`. With a `base` curve (the user's start,
+    shape `(N, n)`, its end values the boundary values), that curve corrected the
+    same way, searched first from the curve itself (`u = 0`) and kept if that
+    search becomes feasible: the user's curve moved onto the constraints.
 
     The correction lives in the span of the smooth modes `sin(j pi s)` (`s` in
     `[0, 1]` along the interval, `j = 1..J`, `J = k + _START_MODES`) of every
@@ -554,7 +589,7 @@ def _feasible_start(full_args, offset):
     Returns `(values, feasible)`: the nodal values `(N, n)` and whether the search
     satisfied the integral constraints (to `sqrt(eps)` of their scale).
     """
-    modes = _Modes(full_args, offset)
+    modes = _Modes(full_args, offset, base)
     dtype = modes.line.dtype
     n = modes.line.shape[1]
     num_modes = modes.basis.shape[1]
@@ -607,17 +642,29 @@ def _feasible_start(full_args, offset):
         1 / jnp.arange(1, num_modes + 1, dtype=dtype)[:, None], (num_modes, n)
     )
     starts = amplitude * jnp.stack([first, -first, generic, -generic]).reshape(4, -1)
-    u, feasible, value, infeasibility = jax.vmap(search)(starts)
-    value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
-    infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
-    best = jnp.where(
-        jnp.any(feasible[:2]),
-        jnp.argmin(value[:2]),
-        jnp.where(
-            jnp.any(feasible[2:]), 2 + jnp.argmin(value[2:]), jnp.argmin(infeasibility)
-        ),
-    )
-    return modes.values(u[best]), feasible[best]
+
+    def from_modes():
+        u, feasible, value, infeasibility = jax.vmap(search)(starts)
+        value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
+        infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
+        best = jnp.where(
+            jnp.any(feasible[:2]),
+            jnp.argmin(value[:2]),
+            jnp.where(
+                jnp.any(feasible[2:]),
+                2 + jnp.argmin(value[2:]),
+                jnp.argmin(infeasibility),
+            ),
+        )
+        return u[best], feasible[best]
+
+    if base is None:
+        u, feasible = from_modes()
+    else:
+        # The base itself first; the finite amplitudes only where that fails.
+        u0, feasible0, _, _ = search(jnp.zeros_like(starts[0]))
+        u, feasible = jax.lax.cond(feasible0, lambda: (u0, feasible0), from_modes)
+    return modes.values(u), feasible
 
 
 def _start_multipliers(x_flat, full_args, num_holonomic_rows):
@@ -637,29 +684,33 @@ def _start_multipliers(x_flat, full_args, num_holonomic_rows):
 
 
 class _Continuation(eqx.Module):
-    """Newton from `z0`; if that fails from the default start, continuation in the
-    integral constraint values (a `strategy` of `kkt_solve`).
+    """Newton from `z0`; if that fails from a start moved onto the integral
+    constraints, continuation in the integral constraint values (a `strategy` of
+    `kkt_solve`).
 
-    The continuation (only from the default start, with integral constraints) solves
-    the problem with the targets `C_j(t) = N_j[line] + t (C_j - N_j[line])`, between
-    the values at the straight line (`t = 0`) and the requested ones (`t = 1`): first
-    at some `t` from the default start for those targets, then with `t` growing by a
-    factor `q` from each solution to the next (`q = 2`, square rooted after a
-    failure), until `t = 1`. For a rope that sags deeply this follows the minimizing
-    branch from a shallow sag, where Newton's method converges from the default
-    start, down to the requested length.
+    The continuation (with integral constraints, from the default start or from the
+    user's curve moved onto them) solves the problem with the targets
+    `C_j(t) = N_j[line] + t (C_j - N_j[line])`, between the values at the straight
+    line (`t = 0`) and the requested ones (`t = 1`): first at some `t` from the start
+    for those targets (the default start, or the user's curve `base` moved onto
+    them, see `_feasible_start`), then with `t` growing by a factor `q` from each
+    solution to the next (`q = 2`, square rooted after a failure), until `t = 1`.
+    For a rope that sags deeply this follows the branch from a shallow sag, where
+    Newton's method converges from the start, down to the requested length.
     """
 
     r_line: Array
     num_holonomic_rows: int = eqx.field(static=True)
     start_found: Array
     deep: Array
+    base: Array | None
 
     def __call__(self, solve, residual, z0, args, start_ok):
         r_line, num_holonomic_rows = self.r_line, self.num_holonomic_rows
         start_found = self.start_found
-        # A deep start (sag larger than twice the interval) goes to the continuation
-        # at once: Newton from it may converge to a spurious discrete extremal.
+        # A deep start (moved onto the constraints by more than twice the interval)
+        # goes to the continuation at once: Newton from it may converge to a
+        # spurious discrete extremal.
         direct_ok = start_ok & jnp.invert(self.deep & start_found)
         z, result, stats = solve(residual, z0, direct_ok)
         dtype = z0.dtype
@@ -673,7 +724,7 @@ class _Continuation(eqx.Module):
 
         def fresh_start(t):
             offset = -(1 - t) * r_line
-            values, _ = _feasible_start(args, offset)
+            values, _ = _feasible_start(args, offset, self.base)
             x = values[1:-1].reshape(-1)
             lam = _start_multipliers(x, args, num_holonomic_rows)
             return jnp.concatenate([x, lam])
@@ -824,7 +875,10 @@ def solve_functional(
     - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
         or the values at the nodes, shape `(N,)` or `(N, n)`. Newton's method finds
         the extremal nearest to it. By default the straight line between the end
-        values; with integral constraints, the line corrected in a few smooth modes
+        values (without integral constraints, straight in the discretization's
+        `start_parameter`: in the graded variable on a [`constrained_jax.Graded`][]
+        grid, so that it leaves a singular end steeply); with integral
+        constraints, the line corrected in a few smooth modes
         `sin(j pi s)` until it satisfies them (of the candidates, the one with the
         lower `F`: the default start looks for the *minimizing* extremal; for a
         functional to be maximised, such as Dido's area, pass `y0`). From the
@@ -832,7 +886,12 @@ def solve_functional(
         twice the interval, the solve continues in the constraint values from those
         of the straight line to `C_j` (a sequence of Newton solves inside the same
         compiled program; `stats["num_steps"]` counts all their steps). A user `y0`
-        overrides all this. A [`constrained_jax.FunctionalSolution`][] as `y0` is
+        with integral constraints (and no holonomic ones) is treated the same way:
+        first moved onto the integral constraints in the same smooth modes (the
+        nearest such curve is searched first, from `y0` itself), then Newton's
+        method, then, if it fails or the move added a sag of more than twice the
+        interval, the continuation, each of whose starts is `y0` moved onto the
+        intermediate values. A [`constrained_jax.FunctionalSolution`][] as `y0` is
         mapped affinely onto this interval, plus the straight line from its end
         values to this functional's (a continuation in the ends: its shape, not its
         values at the same `x`, which beyond its ends would be extrapolated).
@@ -849,19 +908,25 @@ def solve_functional(
         `PiecewiseLinear(N)`, both floored at `1e-10`): it refuses a solution that
         the grid does not resolve at all (a singular end exploited by the
         quadrature, a boundary layer thinner than the mesh) without refusing a
-        convergence study at few nodes. Ask for the accuracy you need. Traced:
-        changing them never recompiles.
+        convergence study at few nodes. The default is never below what the
+        precision can certify: `3000 eps`, and the round-off plateau of the
+        estimate, `discretization.roundoff_rtol(dtype)` (`2 N^2 eps` for
+        `Chebyshev(N)`, above `1e-10` from about 480 nodes in float64), so more
+        nodes never turn a resolved solution into a refusal. Ask for the accuracy
+        you need; a `rtol` below that plateau is refused however many nodes.
+        Traced: changing them never recompiles.
     - `throw`: raise on failure if `True`; otherwise report it in `result`.
 
     **Returns:**
 
     A [`constrained_jax.FunctionalSolution`][]. Refusals: end values that violate
     the holonomic constraint raise `ValueError` (concrete values) or report
-    `RESULTS.inconsistent_boundary` (traced); integral constraints that the default
-    start cannot satisfy and Newton's method does not solve report
-    `RESULTS.infeasible_constraints`; a constraint met only by the straight line
-    where its gradient vanishes (a length equal to the chord) reports
-    `RESULTS.redundant_constraints`.
+    `RESULTS.inconsistent_boundary` (traced); integral constraints that the start
+    (the default, or `y0` moved onto them) cannot satisfy and Newton's method does
+    not solve report `RESULTS.infeasible_constraints`; a constraint met only by the
+    straight line where its gradient vanishes (a length equal to the chord), and
+    dependent integral constraints (the same one given twice) where the solve
+    fails, report `RESULTS.functional_redundant_constraints`.
 
     Differentiable with respect to `args` and to arrays in `functional` (implicit
     function theorem on the discrete KKT system; one more linear solve per backward
@@ -920,9 +985,15 @@ def _error_tolerance(discretization, rtol, atol, dtype):
             if isinstance(discretization, AbstractDiscretization)
             else 0.0
         )
-        # In float32 the coefficient tail sits at round-off near 1e-4: a default
-        # tolerance below what the precision can certify would refuse every solve.
-        rtol = max(rtol, 3000 * float(jnp.finfo(dtype).eps))
+        # A default tolerance below what the precision can certify would refuse a
+        # resolved solution: in float32 the coefficient tail sits at round-off near
+        # 1e-4, and the estimate's round-off plateau grows with the number of nodes
+        # (`roundoff_rtol`), so that more nodes would turn a right answer into a
+        # refusal.
+        floor = 3000 * float(jnp.finfo(dtype).eps)
+        if isinstance(discretization, AbstractDiscretization):
+            floor = max(floor, discretization.roundoff_rtol(dtype))
+        rtol = max(rtol, floor)
     if atol is None:
         atol = 0.0
     out = []
@@ -1008,9 +1079,12 @@ def _solve_functional(
     # The starting guess.
     full_args = (problem, args)
     default_start = y0 is None and k > 0
+    # A user's curve is moved onto the integral constraints the same way as the
+    # default start (not with holonomic constraints: the modes would leave them).
+    user_start = y0 is not None and k > 0 and m == 0
     start_found = jnp.array(True)
     if y0 is None and k == 0:
-        guess = _line(problem)
+        guess = _line(problem, straight_in=problem.discretization)
     elif y0 is None:
         # Satisfies the integral constraints where it can (see `_feasible_start`).
         zero_offset = jnp.zeros((k,), dtype)
@@ -1025,6 +1099,20 @@ def _solve_functional(
                 f"{num_nodes} nodes, shape {(num_nodes,) + shape}; got {guess.shape}."
             )
         guess = guess.reshape(num_nodes, n)
+    base = None
+    if user_start:
+        line = _line(problem)
+        base = jnp.concatenate([line[:1], guess[1:-1], line[-1:]], axis=0)
+        finite = jnp.all(jnp.isfinite(base))
+        base = jnp.where(finite, base, line)
+        zero_offset = jnp.zeros((k,), dtype)
+        moved, start_found = _feasible_start(
+            _stop_gradient(full_args), zero_offset, base
+        )
+        # A start that is not finite stays as it is: `RESULTS.invalid_input`.
+        start_found = start_found & finite
+        base = jax.lax.stop_gradient(base)
+        guess = jnp.where(start_found, moved, guess)
     x0 = guess[1:-1].reshape(-1)
 
     if solver is None:
@@ -1044,14 +1132,15 @@ def _solve_functional(
     check_line = m == 0 and k > 0
     if check_line and default_start:
         degenerate = _degenerate_at_line(_stop_gradient(full_args)) & start_ok
-    if default_start:
+    if default_start or user_start:
         line_values = _line(problem)[1:-1].reshape(-1)
         r_line = _integral_constraints(line_values, full_args)
         continue_ok = start_found & jnp.invert(degenerate)
-        sag = jnp.max(jnp.abs(guess - _line(problem)))
+        reference = _line(problem) if base is None else base
+        sag = jnp.max(jnp.abs(guess - reference))
         deep = sag > 2 * (functional.interval[1] - functional.interval[0])
         continuation = _stop_gradient(
-            _Continuation(r_line, num_holonomic_rows, continue_ok, deep)
+            _Continuation(r_line, num_holonomic_rows, continue_ok, deep, base)
         )
     else:
         continuation = None
@@ -1085,8 +1174,16 @@ def _solve_functional(
             lambda: jnp.array(False),
         )
     # Statuses in the words of this function.
+    # Singular before any step (the iterate is still the start): the start's fault.
+    at_start = jnp.all(jax.lax.stop_gradient(z[:num_unknowns]) == x_safe)
     result = RESULTS.where(
-        result == RESULTS.singular_kkt, RESULTS.functional_singular_kkt, result
+        result == RESULTS.singular_kkt,
+        RESULTS.where(
+            at_start,
+            RESULTS.functional_singular_start,
+            RESULTS.functional_singular_kkt,
+        ),
+        result,
     )
     result = RESULTS.where(
         result == RESULTS.line_search_failed,
@@ -1098,7 +1195,25 @@ def _solve_functional(
         RESULTS.infeasible_constraints,
         result,
     )
-    result = RESULTS.where(degenerate, RESULTS.redundant_constraints, result)
+    if k > 1:
+        # Dependent integral constraints (the same one twice): their Jacobian has
+        # lost rank wherever they hold, and the KKT matrix is singular with them
+        # (a linear solver may report that as a singular matrix, a failed line
+        # search or a Krylov failure, after which the iterate may have left the
+        # constraints). Judged at the start and where the solve stopped, only
+        # after a failure.
+        points = jnp.stack([x_safe, jax.lax.stop_gradient(z[:num_unknowns])])
+        dependent = jax.lax.cond(
+            (result != RESULTS.successful) & start_ok & start_found,
+            lambda: jnp.any(
+                jax.vmap(_dependent_integral_constraints, in_axes=(0, None))(
+                    points, _stop_gradient(full_args)
+                )
+            ),
+            lambda: jnp.array(False),
+        )
+        degenerate = degenerate | dependent
+    result = RESULTS.where(degenerate, RESULTS.functional_redundant_constraints, result)
     result = RESULTS.where(boundary_ok, result, RESULTS.inconsistent_boundary)
     # Failures decided after the solve have no derivative either (NaN, never raised).
     z = nan_tangent_where(z, result != RESULTS.successful)

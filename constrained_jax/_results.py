@@ -147,7 +147,10 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "tangent, `1/sqrt(y)` where `y = 0`), grade the grid there with "
         "`cjax.Graded(discretization, left=p)` (p = 3 for a cycloid's cusp, 2 for "
         "`sqrt(x - xL)`); for a boundary layer use `cjax.PiecewiseLinear` with more "
-        "nodes or a `Graded` grid at that end; or pass a looser `rtol`/`atol`."
+        "nodes or a `Graded` grid at that end; or pass a looser `rtol`/`atol`. (An "
+        "estimate at the round-off level of the discretization, "
+        "`discretization.roundoff_rtol(dtype) * max|y|`, grows with the nodes: ask "
+        "for no less than that.)"
     )
     infeasible_constraints = (
         "The constraints could not be satisfied. `extremize`: the iterates approach "
@@ -155,9 +158,10 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "stationary point of |G|^2 (J^T G = 0) that is not a solution; the "
         "constraints may be inconsistent (e.g. x.x + 1 = 0), or x0 lies in the basin "
         "of a local minimum of |G|: check that G = 0 has a solution, and start "
-        "nearer to it. `solve_functional`: the default start (the straight line, "
-        "corrected in smooth modes) could not satisfy int N_j dx = C_j and Newton's "
-        "method did not converge; the values C_j may be unattainable (a length "
+        "nearer to it. `solve_functional`: the start (the straight line, or the "
+        "curve `y0`, corrected in smooth modes) could not satisfy int N_j dx = C_j "
+        "and Newton's method did not converge; the values C_j may be unattainable (a "
+        "length "
         "shorter than the distance between the end points, for instance): check "
         "them, or pass a starting guess `y0` that satisfies the constraints."
     )
@@ -175,6 +179,17 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "errors of the values). No curve from y(xL) to y(xR) can satisfy G = 0 on the "
         "whole interval. Put the end points on the constraint surface, or fix G."
     )
+    functional_singular_start = (
+        "The KKT matrix of the discretized functional is singular at the start, "
+        "before any step: the start is the cause, not the problem. For instance the "
+        "straight line where an integral constraint is a length (its gradient "
+        "vanishes there), or a curve that creeps along an end value where the "
+        "integrand is singular (the brachistochrone's 1/sqrt(-y) near y = 0), so "
+        "stiff there that the matrix is numerically singular. Pass a starting guess "
+        "`y0` to `solve_functional` that leaves such an end steeply; with no `y0`, "
+        "grade the grid at that end (`cjax.Graded(discretization, left=p)`), whose "
+        "default start does."
+    )
     functional_singular_kkt = (
         "The KKT matrix of the discretized functional is singular at the start or at "
         "an iterate: F + lambda.N is flat along a direction the constraints leave "
@@ -182,6 +197,14 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "line, G = g**2), or the stationary point is degenerate. Pass a different "
         "starting guess `y0` to `solve_functional`, or check that the problem has an "
         "isolated extremal."
+    )
+    functional_redundant_constraints = (
+        "The integral constraints of the functional have no multipliers: two of "
+        "them are the same constraint (or one is a combination of the others), or "
+        "a constraint holds only where its gradient vanishes, such as a length "
+        "equal to the distance between the end points, which only the straight "
+        "line has (the tension would be infinite). Give each integral constraint "
+        "once, and make a length longer than the chord."
     )
     functional_line_search_failed = (
         "The line search on the KKT residual of the discretized functional could not "

@@ -10,15 +10,17 @@
 - two integral constraints (`int y^2 = 1`, `int y sin(pi x) = 0`): the second
   eigenfunction from the default start; Dido from the default start: the minimizing
   (downward) arc, documented.
-- singular KKT at a start (`y0` = the straight line): `functional_singular_kkt`,
-  whose message names `y0`, not `x0`.
+- the straight line as `y0` (where the length has no gradient): moved onto the
+  length like the default start, then the catenary (issue 41; a singular start
+  is `functional_singular_start`, tested in `test_sharp_edges_functional_issue41`).
 - holonomic constraint violated by the end values: `ValueError` for concrete values,
   `RESULTS.inconsistent_boundary` under `jax.jit` (`throw=True` raises); ends on the
   surface up to rounding are accepted.
 - NaN in `args` or in the boundary: `invalid_input` (with and without holonomic).
 - a length shorter than the chord: `infeasible_constraints`; exactly the chord:
-  `redundant_constraints` (no multiplier exists); never successful.
-- a user `y0` wildly off: right (the closed form) or refused, never wrong.
+  `functional_redundant_constraints` (no multiplier exists); never successful.
+- a user `y0` wildly off: right (the closed form of the hanging rope, or of its
+  mirror image, the arch, which is an extremal too) or refused, never wrong.
 """
 
 import math
@@ -203,17 +205,19 @@ def test_dido_default_start_minimizing_arc():
     np.testing.assert_allclose(up.value, ref["value"], rtol=1e-12)
 
 
-def test_singular_start_message_names_y0():
+def test_straight_line_user_start_is_moved_onto_the_length():
+    """The line as `y0` was `functional_singular_kkt` (the length's gradient
+    vanishes there); it is now moved onto the length like the default start."""
     fun = cat.functional(0.0, 0.0, 1.0, 0.0)
     args = {"rho_g": 1.0, "length": 1.5}
-    disc = cjax.PiecewiseLinear(11)
     sol = cjax.solve_functional(
-        fun, args, discretization=disc, y0=lambda x: 0.0 * x, throw=False
+        fun,
+        args,
+        discretization=cjax.Chebyshev(32),
+        y0=lambda x: 0.0 * x,
+        throw=False,
     )
-    assert sol.result == cjax.RESULTS.functional_singular_kkt
-    with pytest.raises(eqx.EquinoxRuntimeError, match="y0") as info:
-        cjax.solve_functional(fun, args, discretization=disc, y0=lambda x: 0.0 * x)
-    assert "`x0`" not in str(info.value)
+    _check_closed_form(sol, (0, 0, 1, 0), 1.5, 1e-10, 1e-10)
 
 
 # A curve on the unit sphere: (x, Y(x), Z(x)).
@@ -309,7 +313,7 @@ def test_length_equal_to_chord_is_refused():
         chord = math.hypot(ends[2] - ends[0], ends[3] - ends[1])
         for solve in (_CHEB, _MESH):
             sol = solve(_ends(*ends), jnp.asarray(chord))
-            assert sol.result == cjax.RESULTS.redundant_constraints
+            assert sol.result == cjax.RESULTS.functional_redundant_constraints
 
 
 def test_length_equal_to_chord_from_a_given_start_is_refused():
@@ -323,7 +327,7 @@ def test_length_equal_to_chord_from_a_given_start_is_refused():
             sol = cjax.solve_functional(
                 fun, args, discretization=disc, y0=y0, throw=False
             )
-            assert sol.result == cjax.RESULTS.redundant_constraints
+            assert sol.result == cjax.RESULTS.functional_redundant_constraints
 
 
 def test_nearly_taut_rope_is_right():
@@ -348,11 +352,20 @@ def test_far_user_start_is_right_or_refused(scale):
         throw=False,
     )
     if sol.result == cjax.RESULTS.successful:
-        # Any extremal it returns satisfies the constraint and is the catenary
-        # (the only extremal with these ends and length that is a graph).
-        _check_closed_form(sol, (0, 0, 1, 0), 1.5, 1e-10, 1e-10)
-    else:
-        assert sol.result != cjax.RESULTS.successful
+        # Any extremal it returns satisfies the constraint and is the catenary or
+        # its mirror image, the arch (multiplier -lambda): the extremals with
+        # these ends and length that are graphs. (The start, moved onto the
+        # length from itself, may end on either side.)
+        ref = cat.closed_form(0, 0, 1, 0, 1.5)
+        sign = np.sign(float(sol.multipliers.integral[0]) * ref["multiplier"])
+        xs = np.linspace(0, 1, 41)
+        np.testing.assert_allclose(
+            sol(jnp.asarray(xs)), sign * ref["y"](xs), atol=1e-10
+        )
+        np.testing.assert_allclose(
+            sol.multipliers.integral[0], sign * ref["multiplier"], rtol=1e-10
+        )
+        np.testing.assert_allclose(sol.value, sign * ref["value"], rtol=1e-10)
 
 
 def test_continuation_from_a_solution_on_another_interval():
