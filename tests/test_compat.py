@@ -280,12 +280,17 @@ def test_the_upstream_reproducers_run():
     """The reproducers of `docs/upstream/diffrax.md` (JAX and diffrax only) run and
     their checks hold: the traced floor is the larger program, the looped floor is
     the same bit for bit, and a solve saving at `ts` holds host callbacks and is not
-    cached where one saving at `t1` is."""
+    cached where one saving at `t1` is; the third reproduces its `TypeError` (a
+    float32 event under x64). When it stops failing, diffrax has the fix: remove
+    the `xfail` of `test_contact_series.py::test_float32_state_with_x64_enabled`."""
     import re
 
     page = PACKAGE.parent / "docs" / "upstream" / "diffrax.md"
     blocks = re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)
-    assert len(blocks) == 2
-    for block in blocks:
+    assert len(blocks) == 3
+    for block in blocks[:2]:
         run = run_python(block, timeout=600, CONSTRAINED_JAX_COMPILATION_CACHE=None)
         assert run.returncode == 0, run.stdout + run.stderr
+    run = run_python(blocks[2], timeout=600, CONSTRAINED_JAX_COMPILATION_CACHE=None)
+    assert run.returncode != 0
+    assert "cond branches must have equal output types" in run.stderr, run.stderr
