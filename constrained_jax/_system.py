@@ -205,13 +205,16 @@ class LagrangianSystem(eqx.Module):
         `AbstractSaddlePointSolver`. The default, `Automatic()`, is chosen at trace
         time from the structure and size: the sparsity-aware unrolled
         [`constrained_jax.RangeSpaceLDL`][] for small systems, the sparse range-space
-        method for large ones with a block-diagonal mass matrix, LAPACK's LU
-        otherwise (any positive semidefinite `M`, even a singular one). Or
+        method ([`constrained_jax.SparseSchur`][]) for large ones with a
+        block-diagonal mass matrix, [`constrained_jax.FullKKTLU`][] (LAPACK's LU of
+        the whole KKT matrix) otherwise (any positive semidefinite `M`, even a
+        singular one). Or
         [`constrained_jax.FullKKTLU`][] (pivoted LU of the whole, dense KKT matrix,
         also for indefinite `M`), or `RangeSpaceLDL(sparse=False)` (dense).
 
-    **Structure.** With a solver that takes sparse matrices (the default,
-    `RangeSpaceLDL()`), the sparsity patterns of `M` and `A` are found once at
+    **Structure.** With a solver that takes sparse matrices (`RangeSpaceLDL()`,
+    `SparseSchur()`, and `Automatic()`, the default, where it chooses them), the
+    sparsity patterns of `M` and `A` are found once at
     trace time, and `M` and `A` are then built from one forward-mode product per
     colour of a column colouring (a diagonal `M` costs one product, not `n`). They
     are read from the traced program (data flow from `qdot_j` to the momentum `p_i`
