@@ -249,9 +249,7 @@ def _broken_links(site, links):
     return broken
 
 
-@needs_mkdocs
-@pytest.mark.parametrize("path", PAGES)
-def test_page_in_a_browser(browser, site, screenshots, path):
+def _check_page(browser, site, screenshots, path):
     browser.open((site / path).as_uri())
     loaded = "window.MathJax && MathJax.startup && MathJax.startup.promise"
     assert browser.evaluate(f"!!({loaded})"), "MathJax did not load"
@@ -299,8 +297,7 @@ class _Quiet(http.server.SimpleHTTPRequestHandler):
         pass
 
 
-@needs_mkdocs
-def test_search_when_served(browser, site, screenshots):
+def _check_search(browser, site, screenshots):
     """Served over HTTP (as by `mkdocs serve` or any web server), the search box
     finds the pages that hold a word. (Opened from the folder, the browser does not
     let the search's web worker read its index: search needs a server.)"""
@@ -324,3 +321,20 @@ def test_search_when_served(browser, site, screenshots):
     pages = {urllib.parse.urlsplit(r).path.lstrip("/") for r in results}
     assert "conventions.html" in pages, results
     assert all((site / page).is_file() for page in pages), results
+
+
+@needs_mkdocs
+def test_site_in_a_browser(browser, site, screenshots):
+    """Each page of `PAGES` opened from the folder, then the search served. (One
+    test, so that the site is built and the browser started once, on one worker.)"""
+    failures = []
+    for path in PAGES:
+        try:
+            _check_page(browser, site, screenshots, path)
+        except (AssertionError, RuntimeError, TimeoutError) as e:
+            failures.append(f"{path}: {type(e).__name__}: {e}")
+    try:
+        _check_search(browser, site, screenshots)
+    except (AssertionError, RuntimeError, TimeoutError) as e:
+        failures.append(f"search: {type(e).__name__}: {e}")
+    assert not failures, "\n\n".join(failures) + f"\n(screenshots: {screenshots})"
