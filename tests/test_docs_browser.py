@@ -251,12 +251,14 @@ def _broken_links(site, links):
 
 def _check_page(browser, site, screenshots, path):
     browser.open((site / path).as_uri())
-    loaded = "window.MathJax && MathJax.startup && MathJax.startup.promise"
-    assert browser.evaluate(f"!!({loaded})"), "MathJax did not load"
-    browser.evaluate(f"{loaded}.then(() => true)", await_promise=True)
-    page = browser.evaluate(_READ_PAGE)
+    started = "window.MathJax && MathJax.startup && MathJax.startup.promise"
+    loaded = browser.evaluate(f"!!({started})")
+    if loaded:  # (wait until it typeset the page)
+        browser.evaluate(f"{started}.then(() => true)", await_promise=True)
     name = path.replace("/", "_").removesuffix(".html")
-    browser.screenshot(screenshots / f"{name}.png")
+    browser.screenshot(screenshots / f"{name}.png")  # (also of a failing page)
+    assert loaded, "MathJax did not load"
+    page = browser.evaluate(_READ_PAGE)
 
     # Formulas: typeset (SVG), none left as TeX, none with a TeX error.
     if path != "api/extremize.html":  # (its docstrings hold no formulas)
