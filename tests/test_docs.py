@@ -1,10 +1,14 @@
 """The documentation site builds with `mkdocs build --strict` (every cross-reference
-resolves, every page is in the nav, no warning), and documents every public name."""
+resolves, every page is in the nav, no warning), documents every public name, loads
+nothing from the network, and shows the notebooks executed. (`test_docs_browser.py`
+opens the built pages in a browser.)"""
 
 import ast
 import importlib.util
+import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 
@@ -95,27 +99,68 @@ def test_site_builds_strict(tmp_path):
 
     for page in (
         "index.html",
-        "getting-started/index.html",
-        "conventions/index.html",
-        "extremize/index.html",
-        "functionals/index.html",
-        "mechanics/index.html",
-        "choosing-a-solver/index.html",
-        "sharp-edges/index.html",
-        "architecture/index.html",
-        "notebooks/03_two_cylinders/index.html",
+        "getting-started.html",
+        "conventions.html",
+        "extremize.html",
+        "functionals.html",
+        "mechanics.html",
+        "choosing-a-solver.html",
+        "sharp-edges.html",
+        "architecture.html",
+        "notebooks/03_two_cylinders.html",
         "images/work_precision.png",
+        "_static/mathjax/tex-svg.js",  # MathJax, shipped with the site
+        "_static/mathjax/LICENSE",
     ):
         assert (site / page).is_file(), page
+    assert "Apache License" in (site / "_static/mathjax/LICENSE").read_text()
 
     # The API reference is generated from the docstrings.
     import constrained_jax as cjax
 
-    api = (site / "api" / "extremize" / "index.html").read_text()
+    api = (site / "api" / "extremize.html").read_text()
     first_words = cjax.extremize.__doc__.split("`")[0].strip()
     assert first_words and first_words in api
     assert 'id="constrained_jax.extremize"' in api
-    results = (site / "api" / "results" / "index.html").read_text()
+    results = (site / "api" / "results.html").read_text()
     assert "singular_kkt" in results
-    notebook = (site / "notebooks" / "03_two_cylinders" / "index.html").read_text()
+
+    # No page loads a script, a stylesheet, a font or an image from the network
+    # (the pages render offline, behind a firewall, opened from the folder).
+    pages = sorted(site.rglob("*.html"))
+    assert len(pages) > 20
+    for page in pages:
+        html = page.read_text()
+        for tag in re.findall(r"<(?:script|link|img|iframe)\b[^>]*>", html):
+            assert not re.search(r'(?:src|href)="(?:https?:)?//', tag), (page, tag)
+        assert "fonts.googleapis" not in html, page
+
+    # The notebook pages show outputs and figures (every code cell executed).
+    for name in NOTEBOOKS:
+        html = (site / "notebooks" / f"{name}.html").read_text()
+        assert not re.search(r"In\s\[\s\]:", html), f"{name}: a cell not executed"
+        assert html.count('src="data:image/png;base64,') >= 1, f"{name}: no figure"
+    notebook = (site / "notebooks" / "03_two_cylinders.html").read_text()
     assert "Unilateral" in notebook
+
+
+NOTEBOOKS = sorted(p.stem for p in (ROOT / "notebooks").glob("*.ipynb"))
+
+
+@pytest.mark.parametrize("name", NOTEBOOKS)
+def test_site_shows_executed_copies_of_the_notebooks(name):
+    """`docs/notebooks/<name>.ipynb` (what the site shows) is `notebooks/<name>.ipynb`
+    executed top to bottom in one kernel (`python notebooks/_execute.py`): the same
+    cells, every code cell run in order, no error, and figures."""
+    source = json.loads((ROOT / "notebooks" / f"{name}.ipynb").read_text())
+    path = ROOT / "docs" / "notebooks" / f"{name}.ipynb"
+    rerun = f"run `python notebooks/_execute.py {name[:2]}`"
+    assert path.is_file() and not path.is_symlink(), f"{path} missing: {rerun}"
+    copy = json.loads(path.read_text())
+    cells = lambda nb: [(c["cell_type"], "".join(c["source"])) for c in nb["cells"]]
+    assert cells(copy) == cells(source), f"{path.name} is out of date: {rerun}"
+    code = [c for c in copy["cells"] if c["cell_type"] == "code"]
+    assert [c["execution_count"] for c in code] == list(range(1, len(code) + 1)), rerun
+    outputs = [o for c in code for o in c["outputs"]]
+    assert not [o for o in outputs if o["output_type"] == "error"], rerun
+    assert any("image/png" in o.get("data", {}) for o in outputs), f"{name}: no figure"
