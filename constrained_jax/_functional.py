@@ -712,15 +712,9 @@ class _Continuation(eqx.Module):
         # goes to the continuation at once: Newton from it may converge to a
         # spurious discrete extremal.
         direct_ok = start_ok & jnp.invert(self.deep & start_found)
-        z, result, stats = solve(residual, z0, direct_ok)
+        skipped = jnp.invert(direct_ok) & start_ok
         dtype = z0.dtype
         pad = jnp.zeros((z0.shape[0] - r_line.shape[0],), dtype)
-
-        def trial(t, z_start):
-            offset = -(1 - t) * r_line
-            shifted = lambda z_, a: residual(z_, a) + jnp.concatenate([pad, offset])
-            z_t, result_t, stats_t = solve(shifted, z_start, start_ok)
-            return z_t, result_t == RESULTS.successful, stats_t["num_steps"]
 
         def fresh_start(t):
             offset = -(1 - t) * r_line
@@ -729,46 +723,76 @@ class _Continuation(eqx.Module):
             lam = _start_multipliers(x, args, num_holonomic_rows)
             return jnp.concatenate([x, lam])
 
+        # One Newton solve in the program (it dominates the compilation): the first
+        # pass of the loop is the direct solve from `z0` at `t = 1`, the later ones
+        # the continuation's trials.
         def cond(carry):
-            _, _, _, q, stage, _, finished = carry
-            return jnp.invert(finished) & (stage < _CONTINUATION_STAGES) & (q > 1.01)
+            stage, q, finished = carry[3], carry[2], carry[4]
+            return jnp.invert(finished) & (stage <= _CONTINUATION_STAGES) & (q > 1.01)
 
         def body(carry):
-            t_done, z_done, t_try, q, stage, steps, _ = carry
+            t_done, t_try, q, stage, _, z_done, steps, direct = carry
+            first = stage == 0
             have = t_done > 0
-            z_start = jax.lax.cond(have, lambda: z_done, lambda: fresh_start(t_try))
-            z_t, ok, num = trial(t_try, z_start)
-            finished = ok & (t_try >= 1)
+            t = jnp.where(first, 1.0, t_try).astype(dtype)
+            z_start = jax.lax.cond(
+                first,
+                lambda: z0,
+                lambda: jax.lax.cond(have, lambda: z_done, lambda: fresh_start(t)),
+            )
+            offset = -(1 - t) * r_line
+            shifted = lambda z_, a: residual(z_, a) + jnp.concatenate([pad, offset])
+            z_t, result_t, stats_t = solve(
+                shifted, z_start, jnp.where(first, direct_ok, start_ok)
+            )
+            ok = result_t == RESULTS.successful
+            steps = steps + stats_t["num_steps"]
+            # The direct solve's outcome, kept as what is returned unless the
+            # continuation solves the problem.
+            direct = jax.tree.map(
+                lambda new, old: jnp.where(first, new, old),
+                (z_t, result_t, stats_t),
+                direct,
+            )
+            need = (
+                (skipped | (result_t != RESULTS.successful))
+                & (result_t != RESULTS.nonlinear_max_steps_reached)
+                & start_ok
+                & start_found
+            )
             # After a failure: from the last solution, a smaller factor; before the
             # first solution, a smaller t.
             q_new = jnp.where(ok | jnp.invert(have), q, jnp.sqrt(q))
-            t_done_new = jnp.where(ok, t_try, t_done)
-            z_done_new = jnp.where(ok, z_t, z_done)
+            t_done_new = jnp.where(ok & jnp.invert(first), t, t_done)
+            z_done_new = jnp.where(ok & jnp.invert(first), z_t, z_done)
             t_next = jnp.where(
                 ok | have, jnp.minimum(1.0, t_done_new * q_new), t_try / 4
             )
+            t_first = jnp.where(skipped, 1 / 16, 1 / 4).astype(dtype)
+            finished = jnp.where(first, jnp.invert(need), ok & (t >= 1))
             return (
                 t_done_new,
-                z_done_new,
-                t_next,
-                q_new,
+                jnp.where(first, t_first, t_next),
+                jnp.where(first, q, q_new),
                 stage + 1,
-                steps + num,
                 finished,
+                z_done_new,
+                steps,
+                direct,
             )
 
         one = jnp.ones((), dtype)
-        skipped = jnp.invert(direct_ok) & start_ok
-        need = (
-            (skipped | (result != RESULTS.successful))
-            & (result != RESULTS.nonlinear_max_steps_reached)
-            & start_ok
-            & start_found
+        init_direct = jax.eval_shape(lambda: solve(residual, z0, direct_ok))
+        init_direct = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), init_direct)
+        init = (0 * one, one, 2 * one, jnp.array(0), jnp.array(False), z0, 0, None)
+        init = init[:6] + (jnp.zeros((), init_direct[2]["num_steps"].dtype),)
+        init = init + (init_direct,)
+        t_done, _, _, stage, finished, z_c, steps, direct = jax.lax.while_loop(
+            cond, body, init
         )
-        t_first = jnp.where(skipped, 1 / 16, 1 / 4).astype(dtype)
-        init = (0 * one, z, t_first, 2 * one, jnp.array(0), stats["num_steps"], ~need)
-        _, z_c, _, _, _, steps, finished = jax.lax.while_loop(cond, body, init)
-        solved = need & finished
+        z, result, stats = direct
+        # Solved by the continuation: a trial at t = 1 after the first pass.
+        solved = finished & (stage > 1) & (t_done >= 1)
         z = jnp.where(solved, z_c, z)
         result = RESULTS.where(
             skipped & jnp.invert(solved), RESULTS.line_search_failed, result
