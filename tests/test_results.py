@@ -82,7 +82,7 @@ def test_items_through_jit_vmap_cond_and_loops():
 
 def test_items_raise_their_message():
     with pytest.raises(eqx.EquinoxRuntimeError, match="KKT matrix"):
-        eqx.filter_jit(lambda x: RESULTS.singular_kkt.error_if(x, x > 0))(1.0)
+        eqx.filter_jit(lambda x: RESULTS.singular_kkt.error_if(x, x > 0))(jnp.ones(()))
     with pytest.raises(ValueError):
         RESULTS.successful == diffrax.RESULTS.successful  # noqa: B015
 
