@@ -29,7 +29,7 @@ def build(
 ) -> list[Job]:
     ref = scene.closed_form(xl, yl, xr, yr, length, rho_g)  # ValueError: impossible
 
-    def finish(sol, seconds):
+    def finish(sol):
         lam = sol.multipliers.integral[0]
         xm = 0.5 * (xl + xr)
         y_mid = sol(jnp.asarray(xm))

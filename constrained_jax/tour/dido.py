@@ -19,7 +19,7 @@ PROGRAM = Program(
 def build(label: str, a: float, length: float) -> list[Job]:
     ref = scene.closed_form(a, length)  # ValueError: impossible
 
-    def finish(sol, seconds):
+    def finish(sol):
         # Chebyshev(32) on the arc, whose branch points x = +-R lie at a distance
         # rho = (R + sqrt(R^2 - a^2))/a (Bernstein ellipse): pointwise values converge
         # like rho^-32 (as in the tests), integrals like rho^-64 (a-priori rates,

@@ -63,7 +63,7 @@ def build(
         raise ValueError("`periods` must be a whole number >= 1.")
     args = scene.default_args(m=m, g=g, l=l)
 
-    def finish(traj, seconds):
+    def finish(traj):
         speed = math.sqrt(2 * g * l * (1 - math.cos(theta0)))
         bottom, half, end = 0, 1, 2
         # Tsit5 at rtol = atol = 1e-10 over one period: global error ~1e-9 per

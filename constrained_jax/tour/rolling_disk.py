@@ -36,7 +36,7 @@ def build(
         )
     args = scene.default_args(m=m, R=R, I_roll=I_roll, I_turn=I_turn)
 
-    def finish(traj, seconds):
+    def finish(traj):
         q_ref, lam_ref = scene.closed_form(jnp.asarray(t1), theta0, nu, omega, args)
         energy = 0.5 * ((m * R**2 + I_roll) * nu**2 + I_turn * omega**2)
         radius = abs(R * nu / omega)

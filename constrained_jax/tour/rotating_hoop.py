@@ -47,13 +47,13 @@ def build(
     args = scene.default_args(m=m, rho=rho, omega=omega, g=g)
     theta_star = math.acos(g / (rho * omega**2))
 
-    def finish_oscillation(out, seconds):
+    def finish_oscillation(out):
         # Tsit5 at 1e-10, no stabilization: the invariant to ~1e-9.
         h0 = scene.jacobi_integral(theta0, 0.0, args)
         h1 = scene.jacobi_integral(out.angle, out.rate, args)
         return [Check("Jacobi integral h(t1)", h1, h0, 1e-8)], {}
 
-    def finish_equilibrium(out, seconds):
+    def finish_equilibrium(out):
         return [Check("theta(t1) from theta*", out.angle, theta_star, 1e-8)], {}
 
     return [

@@ -24,7 +24,7 @@ def build(label: str, radius: float, angle: float) -> list[Job]:
         raise ValueError("needs radius > 0 and 0 < |angle| < pi.")
     ref = scene.closed_form(start, end, radius)  # ValueError: impossible
 
-    def finish(sol, seconds):
+    def finish(sol):
         mid = jnp.asarray(0.0)
         y_mid, ref_mid = sol(mid), ref["y"](0.0)
         # Chebyshev(24) on an analytic arc: the curve ~1e-13; multiplier functions

@@ -35,7 +35,7 @@ def build(
         )
     args = scene.default_args(M=M, alpha=alpha, a=a, R=R, g=g)
 
-    def finish(traj, seconds):
+    def finish(traj):
         rel = traj.release
         angle = float(scene.detachment_angle(theta0, args))
         half = 50  # t*/2, attached
