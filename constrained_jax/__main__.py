@@ -97,21 +97,20 @@ def _time(job: tour.Job) -> float:
     return statistics.median(times)
 
 
-def _first_run(programs: int, cache: Path | None) -> str:
+def _first_run(programs: int, cache: Path | None, whole_tour: bool = True) -> str:
     """What the first run costs and that later runs reuse the compilation cache (in
     `cache`; `None`: off), said before the first compile."""
-    low, high = _FIRST_RUN_MINUTES
-    text = (
-        f"The first run compiles {programs} programs: about {low}-{high} minutes on a "
-        f"{_MEASURED_ON}. "
-    )
+    text = f"The first run compiles {programs} programs"
+    if whole_tour:
+        low, high = _FIRST_RUN_MINUTES
+        text += f": about {low}-{high} minutes on a {_MEASURED_ON}. "
+    else:
+        text += " (seconds each). "
     if cache is None:
         text += "The compilation cache is off: every run compiles them."
     else:
-        text += (
-            f"Later runs read them from the compilation cache ({cache}) and take "
-            f"about {_CACHED_SECONDS} seconds."
-        )
+        text += f"Later runs read them from the compilation cache ({cache})"
+        text += f" and take about {_CACHED_SECONDS} seconds." if whole_tour else "."
     return textwrap.fill(text, tour.WIDTH)
 
 
@@ -308,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
         scene = tour.SCENES[ns.name]
         jobs = scene.jobs(**{k: getattr(ns, k) for k in scene.params})
     programs = _programs(jobs)
-    print(_first_run(len(programs), cache), end="\n\n", flush=True)
+    print(_first_run(len(programs), cache, study is not None), end="\n\n", flush=True)
 
     # The programs compile `--jobs` at a time, in threads (XLA compiles without
     # holding Python's lock), in the order of the table; each job's rows are printed
