@@ -304,10 +304,11 @@ def main(argv: list[str] | None = None) -> int:
     study = None
     if ns.command == "tour":
         study = tour.WorkPrecision()
-        jobs = tour.tour_jobs() + study.jobs()
+        scene_jobs = tour.tour_jobs()
+        jobs = scene_jobs + study.jobs()
     else:
         scene = tour.SCENES[ns.name]
-        jobs = scene.jobs(**{k: getattr(ns, k) for k in scene.params})
+        scene_jobs = jobs = scene.jobs(**{k: getattr(ns, k) for k in scene.params})
     programs = _programs(jobs)
     print(_first_run(len(programs), cache, study is not None), end="\n\n", flush=True)
 
@@ -340,14 +341,12 @@ def main(argv: list[str] | None = None) -> int:
         pictures |= study.pictures()
 
     solves = {}
-    for job in jobs:
-        if study is None or job.note != study.note:
-            solves.setdefault(job.label, 0.0)
-            solves[job.label] += job.seconds
+    for job in scene_jobs:
+        solves[job.label] = solves.get(job.label, 0.0) + job.seconds
     print()
     _print_wrapped(
-        "solve time (compiled, median of 3 runs; a scene's solves added): "
-        + ", ".join(f"{label} {s * 1e3:.2g} ms" for label, s in solves.items())
+        "solve time (compiled, median of 3 runs; a label's solves added): "
+        + "; ".join(f"{label} {s * 1e3:.2g} ms" for label, s in solves.items())
     )
     _print_wrapped(
         f"compilation (first call of each program, {ns.jobs} at a time): "

@@ -59,13 +59,13 @@ class Program:
 
     - `name`: how the compilation times name it.
     - `make`: returns the function to compile.
-    - `compile_cost`: its measured compilation time, relative: the tour compiles the
-        costliest first, so that the threads finish together (unmeasured: 0, last).
+
+    The tour compiles its programs in the order of the table, so that the first
+    scenes' rows come first.
     """
 
     name: str
     make: Callable[[], Callable]
-    compile_cost: float = 0.0
 
     @cached_property
     def fn(self) -> Callable:

@@ -20,7 +20,7 @@ def _run(h, t1, ts, args):
     return simulate(scene.system(), t1, q0, qd0, args, saveat, max_events=MAX_EVENTS)
 
 
-PROGRAM = Program("bouncing_ball", lambda: _run, compile_cost=10)
+PROGRAM = Program("bouncing_ball", lambda: _run)
 
 
 def build(label: str, h: float, e: float, rest_speed: float, m: float) -> list[Job]:

@@ -14,7 +14,6 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "catenary",
     lambda: lambda *values: scene.solve(*values, throw=False),
-    compile_cost=10,
 )
 
 

@@ -12,12 +12,10 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "cylinder_volume",
     lambda: lambda b, l: scene.solve(b, l, throw=False),
-    compile_cost=3,
 )
 CAPPED = Program(
     "cylinder_volume_capped",
     lambda: lambda b, l, h_max: scene.solve_capped(b, l, h_max, throw=False),
-    compile_cost=3,
 )
 
 

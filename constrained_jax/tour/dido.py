@@ -12,7 +12,6 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "dido",
     lambda: lambda a, length: scene.solve(a, length, throw=False),
-    compile_cost=4,
 )
 
 

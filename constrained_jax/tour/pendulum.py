@@ -43,14 +43,11 @@ def _program(solver):
     return run
 
 
-TSIT5 = Program("pendulum Tsit5", lambda: _program(diffrax.Tsit5()), compile_cost=5)
-DOPRI8 = Program(
-    "pendulum Dopri8", lambda: _program(diffrax.Dopri8()), compile_cost=4.5
-)
+TSIT5 = Program("pendulum Tsit5", lambda: _program(diffrax.Tsit5()))
+DOPRI8 = Program("pendulum Dopri8", lambda: _program(diffrax.Dopri8()))
 VARIATIONAL = Program(
     "pendulum variational",
     lambda: _program(cjax.VariationalIntegrator()),
-    compile_cost=7,
 )
 
 

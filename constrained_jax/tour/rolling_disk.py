@@ -15,7 +15,7 @@ def _run(theta0, nu, omega, t1, args):
     return simulate(scene.system(), t1, q0, qd0, args, saveat)
 
 
-PROGRAM = Program("rolling_disk", lambda: _run, compile_cost=8)
+PROGRAM = Program("rolling_disk", lambda: _run)
 
 
 def build(

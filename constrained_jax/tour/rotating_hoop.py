@@ -32,7 +32,7 @@ def _run(theta0, t1, args):
     return _Out(traj.result, angle, rate)
 
 
-PROGRAM = Program("rotating_hoop", lambda: _run, compile_cost=5.5)
+PROGRAM = Program("rotating_hoop", lambda: _run)
 
 
 def build(

@@ -12,7 +12,6 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "sphere_geodesic",
     lambda: lambda start, end, radius: scene.solve(start, end, radius, throw=False),
-    compile_cost=6,
 )
 
 

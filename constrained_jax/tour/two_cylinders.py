@@ -21,7 +21,7 @@ def _run(theta0, args):
     return simulate(scene.contact_system(), ts[-1], q0, qd0, args, saveat)
 
 
-PROGRAM = Program("two_cylinders", lambda: _run, compile_cost=16)
+PROGRAM = Program("two_cylinders", lambda: _run)
 
 
 def build(
