@@ -99,6 +99,10 @@ def test_tour_reads_on_a_newcomer_screen(tour):
     assert "The compilation cache is off: every run compiles them." in start
     on = " ".join(cli._first_run(12, pathlib.Path("/cache")).split())
     assert "Later runs read them from the compilation cache (/cache)" in on
+    # Each scene's heading says in words what it is.
+    for name in SCENES:
+        (heading,) = [line for line in lines if line.startswith(f"{name}: ")]
+        assert len(heading.split(": ", 1)[1]) > 10
     headings = [line for line in lines if line.startswith("cylinder_volume(b=0.001")]
     assert len(headings) == 2
     for heading in headings:

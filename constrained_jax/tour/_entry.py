@@ -137,6 +137,7 @@ class Scene:
     - `build`: `build(label, **values) -> list[Job]`, every parameter given; raises
         `ValueError` with the reason for impossible parameters.
     - `picture`: what its picture shows (for `tour --help`), if it draws one.
+    - `title`: a few words for the table's heading: what the scene is.
     """
 
     name: str
@@ -144,6 +145,7 @@ class Scene:
     params: dict[str, Param]
     build: Callable[..., list[Job]]
     picture: str = ""
+    title: str = ""
 
     def label(self, values: dict) -> str:
         """The name, with the parameters that differ from their defaults."""
@@ -157,9 +159,13 @@ class Scene:
         values = {k: values.get(k, p.default) for k, p in self.params.items()}
         label = self.label(values)
         try:
-            return self.build(label, **values)
+            jobs = self.build(label, **values)
         except ValueError as e:
             raise SystemExit(f"{label}: {e}") from None
+        for job in jobs:
+            if job.label == label and not job.note:
+                job.note = self.title
+        return jobs
 
 
 def arrays(*values) -> tuple:

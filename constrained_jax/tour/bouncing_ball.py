@@ -81,4 +81,5 @@ SCENE = Scene(
         "m": Param(1.0, "mass"),
     },
     build,
+    title="a ball bouncing on a floor until it comes to rest",
 )

@@ -72,4 +72,5 @@ SCENE = Scene(
     },
     build,
     picture="the catenary against its closed form",
+    title="a hanging rope of fixed length (an integral constraint)",
 )

@@ -82,6 +82,7 @@ def build(label: str, b: float, l: float, h_max: float) -> list[Job]:
             CAPPED,
             arrays(b, l, h_max),
             finish_capped,
+            note="an inequality constraint, with its multiplier mu",
         ),
     ]
 
@@ -100,4 +101,5 @@ SCENE = Scene(
     },
     build,
     picture="the cylinder's constrained extremum",
+    title="the largest cylinder V = pi a^2 h for a budget 2 pi a + h^2/b = l",
 )

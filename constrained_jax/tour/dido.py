@@ -56,4 +56,5 @@ SCENE = Scene(
         ),
     },
     build,
+    title="Dido's problem: the largest area for a given length",
 )

@@ -96,4 +96,5 @@ SCENE = Scene(
         "l": Param(1.0, "length of the rod (the constraint r = l)"),
     },
     build,
+    title="a pendulum in Cartesian coordinates, its rod a constraint r = l",
 )

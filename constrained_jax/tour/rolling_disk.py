@@ -72,4 +72,5 @@ SCENE = Scene(
         "I_turn": Param(0.0625, "moment of inertia about the vertical"),
     },
     build,
+    title="a disk rolling without slipping (a nonholonomic constraint)",
 )

@@ -77,4 +77,5 @@ SCENE = Scene(
         "g": Param(9.81, "gravity"),
     },
     build,
+    title="a bead on a spinning hoop (a constraint that moves)",
 )

@@ -54,4 +54,5 @@ SCENE = Scene(
         "angle": Param(0.8, "angle about the x-axis between the two ends [rad]"),
     },
     build,
+    title="the shortest path on a sphere",
 )

@@ -124,4 +124,5 @@ SCENE = Scene(
     },
     build,
     picture="the two cylinders' normal force against angle with the detachment point",
+    title="a cylinder rolling off a fixed one, until it lets go",
 )
