@@ -46,9 +46,9 @@ class WorkPrecision:
     note = "the variational integrator's order, from the work-precision runs"
 
     def __init__(self):
-        # method -> the jobs of its settings, and their errors (once finished)
+        # method -> (tag, job) of each setting; (method, tag) -> its error, once run
         self.runs: dict[str, list[tuple[str, Job]]] = {}
-        self.errors: dict[Job, float] = {}
+        self.errors: dict[tuple[str, str], float] = {}
 
     def jobs(self) -> list[Job]:
         """Jobs that time the pendulum over `PERIODS` periods from `theta0 = 1`, for
@@ -69,29 +69,20 @@ class WorkPrecision:
                 dt0 = period / setting if kind == "steps" else 0.0
                 tag = f"{kind}={setting:g}"
 
-                def finish(traj):
-                    err = max(
+                def finish(traj, method=method, tag=tag):
+                    self.errors[method, tag] = max(
                         float(np.max(np.abs(np.asarray(traj.q[-1]) - q0))) / l,
                         float(np.max(np.abs(np.asarray(traj.qd[-1]))))
                         / math.sqrt(g * l),
                     )
-                    return [], {}, err
+                    return [], {}
 
                 inputs = (theta, *arrays(PERIODS), args, *arrays(rtol, dt0))
                 label = f"work-precision {method} {tag}"
-                job = Job(label, program, inputs, None, repeats=5, note=self.note)
-                job.finish = self._recorder(job, finish)
+                job = Job(label, program, inputs, finish, repeats=5, note=self.note)
                 self.runs[method].append((tag, job))
                 jobs.append(job)
         return jobs
-
-    def _recorder(self, job: Job, finish):
-        def record(traj):
-            checks, pictures, err = finish(traj)
-            self.errors[job] = err
-            return checks, pictures
-
-        return record
 
     @property
     def records(self) -> dict[str, tuple[list, list, list]]:
@@ -100,7 +91,8 @@ class WorkPrecision:
         for method, runs in self.runs.items():
             # An exact zero (never seen) would not fit a log scale: floor it.
             errors = [
-                max(self.errors[job], np.finfo(np.float64).eps) for _, job in runs
+                max(self.errors[method, tag], np.finfo(np.float64).eps)
+                for tag, _ in runs
             ]
             records[method] = (
                 errors,
@@ -134,7 +126,7 @@ class WorkPrecision:
 
     def summary(self) -> str:
         lines = [
-            f"  {method:<30} {tag:<12} error {self.errors[job]:9.2e} "
+            f"  {method:<30} {tag:<12} error {self.errors[method, tag]:9.2e} "
             f"{job.seconds * 1e3:9.3f} ms"
             for method, runs in self.runs.items()
             for tag, job in runs
