@@ -46,6 +46,7 @@ from ._integrability import (
     is_exact as is_exact,
     is_integrable as is_integrable,
 )
+from ._misc import publish as _publish
 from ._reduce import (
     Linearization as Linearization,
     linearize as linearize,
@@ -96,6 +97,8 @@ from ._variational_integrator import (
     VariationalTrajectory as VariationalTrajectory,
 )
 
+
+_publish(globals(), __name__)
 
 try:
     __version__ = importlib.metadata.version("constrained_jax")

@@ -1,9 +1,9 @@
 """Command line: `python -m constrained_jax` (also the `constrained-jax` script).
 
-- `tour`: solve every built-in scene on its default parameters, print one table
-  (scene, quantity, computed, closed form, relative error, tolerance, time), write the
-  pictures into `--out` (default `./constrained_jax_tour/`) and a work-precision
-  diagram of the pendulum. Exit status 1 if any check fails.
+- `tour`: solve every built-in scene on its default parameters, print the table of
+  checks (under each scene: quantity, computed, closed form, relative error,
+  tolerance), write the pictures into `--out` (default `./constrained_jax_tour/`) and
+  a work-precision diagram of the pendulum. Exit status 1 if any check fails.
 - `scene NAME [--param value ...]`: run one scene (and draw its picture, if it has
   one); `scene NAME --help` lists its parameters with their defaults.
 - `list`: the scenes and their parameters.
@@ -12,13 +12,18 @@ Every check compares a computed number with the scene's closed form. The relativ
 error is `|computed - closed form| / |closed form|`, or, for a quantity whose closed
 form is zero, divided by the scale named in the row (`/l`: a length, `/sqrt(gl)`: a
 speed). Each row states its tolerance, chosen from the accuracy the method promises
-(the integrator's tolerance, spectral accuracy), not from the result.
+(the integrator's tolerance, spectral accuracy), not from the result. A row that is
+not a scene on its defaults says why it is there (its heading's note). Every line
+fits 100 columns.
 
-Times are wall clock: `time` is the median of a few runs of the compiled solve. The
-tour first compiles every program (`--jobs` at a time, in threads: XLA compiles
-without holding Python's lock), then runs them one by one; the first call of each
-program (tracing, compilation and one run) is listed below the table. Compilation
-dominates the tour's run time (seconds per program; the solves take milliseconds).
+Before it compiles, the tour says what the first run costs and that later runs read
+the programs from the compilation cache. The programs compile `--jobs` at a time, in
+threads (XLA compiles without holding Python's lock), in the order of the table, and
+each scene's rows are printed as soon as its programs have compiled. Once all have,
+each solve is timed (wall clock, the median of a few runs of the compiled solve,
+listed below the table with the first call of each program: tracing, compilation
+and one run). Compilation dominates the tour's run time (seconds per program; the
+solves take milliseconds).
 
 Compiled programs are kept in JAX's persistent compilation cache
 (`constrained_jax.enable_compilation_cache`: `$XDG_CACHE_HOME/constrained_jax/jax` or
@@ -44,6 +49,7 @@ import importlib.util
 import os
 import statistics
 import sys
+import textwrap
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -53,46 +59,61 @@ from . import tour
 
 
 _DEFAULT_OUT = "constrained_jax_tour"
+# What the tour's first run and a run with the compilation cache cost, as the tour
+# says before it compiles: measured from a fresh clone on the machine named (the
+# README's main-job command, then `constrained-jax tour` again; README.md quotes
+# the run).
+_FIRST_RUN_MINUTES = (1, 2)
+_CACHED_SECONDS = (20, 40)
+_MEASURED_ON = "2-core x86_64 CPU"
 
 
-def _compile(jobs: list[tour.Job], workers: int) -> dict[str, float]:
-    """Call each program once (tracing, compilation, one run), `workers` at a time
-    in threads, the costliest first; returns the seconds of each first call."""
-    import jax
-
+def _programs(jobs: list[tour.Job]) -> dict[tour.Program, tour.Job]:
+    """Each program, in the order of the table, with the first job that calls it."""
     first = {}
     for job in jobs:
         first.setdefault(job.program, job)
-    order = sorted(first, key=lambda program: -program.compile_cost)
-    for program in order:
-        _ = program.fn  # build the jitted functions in this thread
-
-    def call(program):
-        job = first[program]
-        start = time.perf_counter()
-        jax.block_until_ready(program.fn(*job.inputs))
-        return time.perf_counter() - start
-
-    if workers <= 1:
-        return {program.name: call(program) for program in order}
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {program.name: pool.submit(call, program) for program in order}
-        return {name: future.result() for name, future in futures.items()}
+    return first
 
 
-def _run(job: tour.Job):
-    """The job's compiled solve, checked: its output is timed by the median of
-    `repeats` calls."""
+def _first_call(program: tour.Program, job: tour.Job) -> float:
+    """The seconds of the program's first call (tracing, compilation, one run)."""
+    import jax
+
+    start = time.perf_counter()
+    jax.block_until_ready(program.fn(*job.inputs))
+    return time.perf_counter() - start
+
+
+def _time(job: tour.Job) -> float:
+    """The median wall clock of `job.repeats` calls of the job's compiled solve."""
     import jax
 
     fn = job.program.fn
-    out = jax.block_until_ready(fn(*job.inputs))
     times = []
     for _ in range(job.repeats):
         start = time.perf_counter()
         jax.block_until_ready(fn(*job.inputs))
         times.append(time.perf_counter() - start)
-    return job.rows(out, statistics.median(times))
+    return statistics.median(times)
+
+
+def _first_run(programs: int, cache: Path | None, whole_tour: bool = True) -> str:
+    """What the first run costs and that later runs reuse the compilation cache (in
+    `cache`; `None`: off), said before the first compile."""
+    text = f"The first run compiles {programs} programs"
+    if whole_tour:
+        low, high = _FIRST_RUN_MINUTES
+        text += f": about {low}-{high} minutes on a {_MEASURED_ON}. "
+    else:
+        text += " (seconds each). "
+    if cache is None:
+        text += "The compilation cache is off: every run compiles them."
+    else:
+        text += f"Later runs read them from the compilation cache ({cache})"
+        low, high = _CACHED_SECONDS
+        text += f" and take about {low}-{high} seconds." if whole_tour else "."
+    return textwrap.fill(text, tour.WIDTH)
 
 
 def _code_generator(xla_defaults: bool) -> str:
@@ -223,9 +244,10 @@ def _parser() -> argparse.ArgumentParser:
         "tour",
         help="solve every built-in scene, check the closed forms, draw the pictures",
         description=(
-            "Solve every built-in scene on its default parameters, print one table "
-            "(scene, quantity, computed, closed form, relative error, tolerance, "
-            f"time of the compiled solve), write the pictures ({', '.join(pictures)}) "
+            "Solve every built-in scene on its default parameters, print the table "
+            "of checks as the scenes finish (quantity, computed, closed form, "
+            "relative error, tolerance), the time of each compiled solve, write the "
+            f"pictures ({', '.join(pictures)}) "
             "and exit with status 1 if any check fails. Compilation dominates the "
             "run time (seconds per program; the solves take milliseconds)."
         ),
@@ -267,8 +289,9 @@ def main(argv: list[str] | None = None) -> int:
 
     code_generator = _code_generator(ns.xla_defaults)
     diffrax_patch = _diffrax_patch(ns.diffrax_defaults)
+    cache = None
     if not ns.no_compilation_cache:
-        enable_compilation_cache()
+        cache = enable_compilation_cache()
     jax.config.update("jax_enable_x64", True)
     plots = not ns.no_plots
     if plots and not _have_matplotlib():
@@ -281,26 +304,53 @@ def main(argv: list[str] | None = None) -> int:
     study = None
     if ns.command == "tour":
         study = tour.WorkPrecision()
-        jobs = tour.tour_jobs() + study.jobs()
+        scene_jobs = tour.tour_jobs()
+        jobs = scene_jobs + study.jobs()
     else:
         scene = tour.SCENES[ns.name]
-        jobs = scene.jobs(**{k: getattr(ns, k) for k in scene.params})
-    first_calls = _compile(jobs, ns.jobs)
-    rows, pictures = [], {}
+        scene_jobs = jobs = scene.jobs(**{k: getattr(ns, k) for k in scene.params})
+    programs = _programs(jobs)
+    print(_first_run(len(programs), cache, study is not None), end="\n\n", flush=True)
+
+    # The programs compile `--jobs` at a time, in threads (XLA compiles without
+    # holding Python's lock), in the order of the table; each job's rows are printed
+    # as soon as its program has compiled. The solves are timed once every program
+    # has compiled, so that no compilation competes with them.
+    for program in programs:
+        _ = program.fn  # build the jitted functions in this thread
+    table = tour.Table()
+    table.start()
+    pictures = {}
+    with ThreadPoolExecutor(max_workers=max(ns.jobs, 1)) as pool:
+        first_calls = {
+            program: pool.submit(_first_call, program, job)
+            for program, job in programs.items()
+        }
+        for job in jobs:
+            first_calls[job.program].result()
+            out = jax.block_until_ready(job.program.fn(*job.inputs))
+            rows, new_pictures = job.rows(out)
+            table.add(job.label, rows, job.note)
+            if job.draw:
+                pictures |= new_pictures
+        first_calls = {p.name: f.result() for p, f in first_calls.items()}
     for job in jobs:
-        new_rows, new_pictures = _run(job)
-        rows += new_rows
-        if job.draw:
-            pictures |= new_pictures
+        job.seconds = _time(job)
     if study is not None:
-        rows += study.rows()
+        table.add("work-precision", study.rows(), study.note)
         pictures |= study.pictures()
 
-    ok = tour.print_table(rows)
-    print(
-        "time: median wall clock of the compiled solve. Compilation (first call of "
-        f"each program, {ns.jobs} at a time):\n  "
-        + ", ".join(f"{p} {s:.1f} s" for p, s in first_calls.items())
+    solves = {}
+    for job in scene_jobs:
+        solves[job.label] = solves.get(job.label, 0.0) + job.seconds
+    print()
+    _print_wrapped(
+        "solve time (compiled, median of 3 runs; a label's solves added):",
+        [f"{label} {s * 1e3:.2g} ms;" for label, s in solves.items()],
+    )
+    _print_wrapped(
+        f"compilation (first call of each program, {ns.jobs} at a time):",
+        [f"{p} {s:.1f} s," for p, s in first_calls.items()],
     )
     if study is not None:
         print(study.summary())
@@ -308,12 +358,21 @@ def main(argv: list[str] | None = None) -> int:
         print()
         for name, draw in pictures.items():
             print(f"picture: {tour.save(ns.out, name, draw)}")
-    print(
-        f"\ntotal {time.perf_counter() - start:.1f} s (compilation included, "
-        f"{code_generator}; {diffrax_patch})"
+    print(f"\ntotal {time.perf_counter() - start:.1f} s, compilation included")
+    _print_wrapped(f"compiled with {code_generator}; {diffrax_patch}")
+    print("all checks passed" if table.ok else "SOME CHECKS FAILED")
+    return 0 if table.ok else 1
+
+
+def _print_wrapped(text: str, items: list[str] = ()) -> None:
+    """`text`, then `items` (each kept on one line), wrapped to the tour's width."""
+    if items:
+        items = [*items[:-1], items[-1][:-1]]  # no separator after the last
+    words = [text] + [item.replace(" ", "\xa0") for item in items]
+    wrapped = textwrap.fill(
+        " ".join(words), tour.WIDTH, subsequent_indent="  ", break_on_hyphens=False
     )
-    print("all checks passed" if ok else "SOME CHECKS FAILED")
-    return 0 if ok else 1
+    print(wrapped.replace("\xa0", " "))
 
 
 if __name__ == "__main__":

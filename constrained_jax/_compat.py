@@ -23,6 +23,12 @@ maybe slower or less informative, on a version it was not written for:
     layout of the dense output of diffrax's Runge-Kutta solvers (`dense_info["k"]`,
     the stage increments). Guarded by the diffrax version; fallback: `None` from
     `runge_kutta_stages` (sample the dense output instead).
+- [`NamedEnumerationMeta`][]: the metaclass of the library's enumerations
+    (`RESULTS`, `EXTREMUM`), whose items print as their names (`RESULTS.successful`)
+    rather than as equinox's `RESULTS<message>`. equinox's item class is not public:
+    its items are subclassed, with the fields equinox gives them (`_value`,
+    `_enumeration`). Guarded by the presence of exactly those; fallback: equinox's
+    own metaclass (its repr).
 - [`patched_diffrax`][]: two scoped replacements in diffrax's private `_integrate`
     module while a solve is traced, opted into with
     [`constrained_jax.settings.use_diffrax_patch`][]. Guarded by the diffrax version;
@@ -40,6 +46,7 @@ import types
 from typing import NamedTuple
 
 import diffrax
+import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import lineax.internal
@@ -105,6 +112,98 @@ def _quiet(log: logging.Logger):
 
 while_loop = eqxi.while_loop
 buffer_at_set = eqxi.buffer_at_set
+
+
+# --------------------------------------------------------------------------------------
+# equinox: enumeration items that print as their names.
+
+_EnumerationMeta = type(eqx.Enumeration)
+_EnumerationItem = type(diffrax.RESULTS.successful)
+
+
+def _item_names(enumeration, value) -> str:
+    """The names of the items `value` (an item's `_value`) of `enumeration`: one
+    name, a bracketed array of names (a `vmap`ped result), `(traced)` inside a
+    transformation, or `(unknown)` for a leaf that is not an array."""
+    if isinstance(value, jax.core.Tracer):
+        return "(traced)"
+    if not isinstance(value, (np.ndarray, np.generic, jax.Array)):
+        return "(unknown)"
+    names = {int(item._value): name for name, item in enumeration._name_to_item.items()}
+    indices = np.asarray(value)
+    if indices.ndim == 0:
+        return names.get(int(indices), f"({int(indices)})")
+    return np.array2string(
+        indices,
+        separator=", ",
+        formatter={"int": lambda i: names.get(int(i), f"({int(i)})")},
+        threshold=20,
+    )
+
+
+class _NamedItem(_EnumerationItem):
+    """An item of a `NamedEnumerationMeta` enumeration: `str` is its name
+    (`successful`), `repr` the name on its enumeration (`RESULTS.successful`; a
+    batch: `RESULTS[successful, singular_kkt]`; inside a transformation:
+    `RESULTS(traced)`). Its message is `RESULTS[item]`, as for any equinox
+    enumeration."""
+
+    def __repr__(self):
+        names = _item_names(self._enumeration, self._value)
+        separator = "" if names.startswith(("[", "(")) else "."
+        return f"{self._enumeration.__qualname__}{separator}{names}"
+
+    def __str__(self):
+        return _item_names(self._enumeration, self._value)
+
+
+def _named(item):
+    if isinstance(item, _NamedItem):
+        return item
+    return _NamedItem(item._value, item._enumeration)
+
+
+_equinox_where = eqx.Enumeration.where.__func__
+_equinox_promote = eqx.Enumeration.promote.__func__
+
+
+def _where(cls, pred, a, b):
+    return _named(_equinox_where(cls, pred, a, b))
+
+
+def _promote(cls, item):
+    return _named(_equinox_promote(cls, item))
+
+
+def _named_items_supported() -> bool:
+    fields = getattr(_EnumerationItem, "__dataclass_fields__", {})
+    item = diffrax.RESULTS.successful
+    return (
+        list(fields) == ["_value", "_enumeration"]
+        and isinstance(getattr(item, "_value", None), np.ndarray)
+        and isinstance(getattr(diffrax.RESULTS, "_name_to_item", None), dict)
+    )
+
+
+class _NamedEnumerationMeta(_EnumerationMeta):
+    """equinox's enumeration metaclass, whose items are `_NamedItem`s: the items
+    named in the class body and inherited, and those `where` and `promote` build
+    (so that every item of one enumeration has the same pytree type, as `lax.cond`
+    and `lax.while_loop` need)."""
+
+    def __new__(mcs, cls_name, bases, namespace):
+        cls = super().__new__(mcs, cls_name, bases, namespace)
+        for name, item in cls._name_to_item.items():
+            cls._name_to_item[name] = _named(item)
+        # equinox's metaclass refuses these names in a class body: set after it.
+        cls.where = classmethod(_where)
+        cls.promote = classmethod(_promote)
+        return cls
+
+
+NamedEnumerationMeta = (
+    _NamedEnumerationMeta if _named_items_supported() else _EnumerationMeta
+)
 
 
 # --------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
+from ._compat import NamedEnumerationMeta
 from ._custom_types import Args, ConstraintFn, ObjectiveFn, Scalar, X
 from ._implicit import nan_tangent_where
 from ._inequalities import (
@@ -142,7 +143,7 @@ def _solver_or_default(solver, n: int, k: int, m: int, dtype) -> AbstractKKTSolv
     return solver
 
 
-class EXTREMUM(eqx.Enumeration):
+class EXTREMUM(eqx.Enumeration, metaclass=NamedEnumerationMeta):
     """What kind of stationary point an [`constrained_jax.Extremum`][] is.
 
     Judged by the eigenvalues of the Hessian of `F* = F + lambda . G` restricted to the

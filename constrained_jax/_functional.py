@@ -893,8 +893,8 @@ def solve_functional(
         nodes) or [`constrained_jax.PiecewiseLinear`][] (second order, linear cost).
     - `solver`: an [`constrained_jax.AbstractKKTSolver`][]. By default
         `Newton(rtol=1e-10, atol=1e-10, linear_solver=...)` with the linear solver that
-        suits the discretization (`discretization.make_linear_solver(n, m, k)`: dense LU
-        for `Chebyshev`, the linear-cost
+        suits the discretization (`discretization.make_linear_solver(n, m, k)`:
+        [`constrained_jax.EquilibratedDenseLU`][] for `Chebyshev`, the linear-cost
         [`constrained_jax.BorderedBlockTridiagonal`][] for `PiecewiseLinear`).
     - `y0`: the starting guess: a callable `y0(x)` (shaped like the boundary values),
         or the values at the nodes, shape `(N,)` or `(N, n)`. Newton's method finds

@@ -4,6 +4,7 @@ import functools
 import inspect
 import operator
 import os
+import types
 import warnings
 
 import jax
@@ -318,3 +319,23 @@ def full_precision(fn):
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+def publish(namespace: dict, module: str) -> None:
+    """Names `module` as the home of the public classes and functions in
+    `namespace` (a public module's `globals()`) that a private module of the package
+    defines, as NumPy and JAX do: their reprs, `help()` and pickles say
+    `constrained_jax.Holonomic`, not `constrained_jax._constraints.Holonomic`.
+    (`inspect.getsource` of such a class then looks in `module`'s file and fails:
+    the source is in the private module named by its methods' `__code__`.)"""
+    package = module.split(".")[0]
+    for name, obj in namespace.items():
+        home = getattr(obj, "__module__", None)
+        if (
+            not name.startswith("_")
+            and isinstance(obj, (type, types.FunctionType))
+            and isinstance(home, str)
+            and home.startswith(package + ".")
+            and any(part.startswith("_") for part in home.split(".")[1:])
+        ):
+            obj.__module__ = module

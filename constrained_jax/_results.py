@@ -3,7 +3,8 @@
 `RESULTS` extends `diffrax.RESULTS` (which extends `optimistix.RESULTS`, which extends
 `lineax.RESULTS`), so that a status coming from any of those libraries can be
 promoted into ours with `RESULTS.promote(...)` and reported with the same machinery.
-Each member's value is the message the user reads when `throw=True` raises.
+Each member's value is the message the user reads when `throw=True` raises
+(`RESULTS[item]`); an item prints as its name (`RESULTS.successful`).
 """
 
 import diffrax
@@ -11,8 +12,10 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ._compat import NamedEnumerationMeta
 
-class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+
+class RESULTS(diffrax.RESULTS, metaclass=NamedEnumerationMeta):  # pyright: ignore[reportGeneralTypeIssues]
     successful = ""
     invalid_input = (
         "The initial guess or the parameters `args` contain NaN or inf. Check the "

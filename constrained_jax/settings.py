@@ -37,6 +37,10 @@ from ._code_generator import (
     use_loop_kernels as use_loop_kernels,
 )
 from ._diffrax_integrate import use_diffrax_patch as use_diffrax_patch
+from ._misc import publish as _publish
+
+
+_publish(globals(), __name__)
 
 
 __all__ = [

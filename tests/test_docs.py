@@ -164,3 +164,129 @@ def test_site_shows_executed_copies_of_the_notebooks(name):
     outputs = [o for c in code for o in c["outputs"]]
     assert not [o for o in outputs if o["output_type"] == "error"], rerun
     assert any("image/png" in o.get("data", {}) for o in outputs), f"{name}: no figure"
+
+
+def _public_callables():
+    import types
+
+    import constrained_jax as cjax
+
+    for module in (cjax, cjax.settings, cjax.plot):
+        for name, obj in sorted(vars(module).items()):
+            if name.startswith("_") or not isinstance(obj, (type, types.FunctionType)):
+                continue
+            if obj.__module__.startswith("constrained_jax"):
+                yield f"{module.__name__}.{name}", obj
+
+
+# The phrases by which a docstring states a default: "`value` (default)",
+# "`name=value` (the default)", "default `value`", "The default, `value`,".
+_STATED = (
+    r"`(?P<value>[^`]+)` \((?:the )?default\)",
+    r"\bdefault `(?P<value>[^`]+)`",
+    r"\bThe default, `(?P<value>[^`]+)`",
+)
+
+
+def _stated_defaults(doc: str, parameters) -> list[tuple[str, str]]:
+    """`(parameter, value)` for each default a docstring states: in a parameter's
+    `- `name`: ...` item, or as `name=value` anywhere."""
+    found = []
+    items = re.split(r"^\s*- `", doc, flags=re.M)[1:]
+    for item in items:
+        name = item.split("`", 1)[0]
+        text = " ".join(item.split())
+        if name not in parameters:
+            continue
+        for pattern in _STATED:
+            for match in re.finditer(pattern, text):
+                value = match.group("value")
+                if "=" not in value:
+                    found.append((name, value))
+    text = " ".join(doc.split())
+    for pattern in _STATED:
+        for match in re.finditer(pattern, text):
+            name, eq, value = match.group("value").partition("=")
+            if eq and name in parameters:
+                found.append((name, value))
+    return found
+
+
+def _check_defaults(qualname, obj, namespace) -> tuple[int, list[str]]:
+    import inspect
+
+    doc = inspect.getdoc(obj) or ""
+    parameters = inspect.signature(obj).parameters
+    wrong, count = [], 0
+    for name, value in _stated_defaults(doc, parameters):
+        default = parameters[name].default
+        if default is inspect.Parameter.empty:
+            wrong.append(f"{qualname}: `{name}` has no default, docstring: {value}")
+            continue
+        if default is None and value != "None":
+            continue  # `None` stands for a default computed in the call
+        count += 1
+        if (qualname, name) in _NO_EQUALITY:
+            continue
+        try:
+            stated = eval(value, namespace)  # noqa: S307
+        except Exception:
+            wrong.append(f"{qualname}: `{name}`: cannot read `{value}`")
+            continue
+        if type(stated) is not type(default) or not bool(stated == default):
+            wrong.append(f"{qualname}: `{name}` defaults to {default!r}, docs: {value}")
+    return count, wrong
+
+
+# Defaults that do not compare by `==` (an optax optimizer is a pair of closures):
+# checked by hand in `test_stated_defaults_are_the_signatures`.
+_NO_EQUALITY = {("constrained_jax.fit", "optimizer")}
+
+
+def _namespace():
+    import diffrax
+    import jax
+    import optax
+
+    import constrained_jax as cjax
+
+    return {**vars(cjax), "cjax": cjax, "jax": jax, "diffrax": diffrax, "optax": optax}
+
+
+def test_stated_defaults_are_the_signatures():
+    """Where a public docstring states a parameter's default ("`None` (default)",
+    "default `0.0`", "`method="auto"` (the default)", "The default,
+    `Automatic()`"), it is the signature's (a `None` default may stand for a
+    computed one, which the docstring then describes)."""
+    namespace = _namespace()
+    count, wrong = 0, []
+    for qualname, obj in _public_callables():
+        n, w = _check_defaults(qualname, obj, namespace)
+        count += n
+        wrong += w
+    assert not wrong, "\n".join(wrong)
+    assert count >= 12  # the phrases are found
+    # `fit`: "by default `optax.adam(1e-2)`".
+    import inspect
+
+    import constrained_jax as cjax
+    from constrained_jax import _fit
+
+    assert _fit.DEFAULT_LEARNING_RATE == 1e-2
+    optimizer = inspect.signature(cjax.fit).parameters["optimizer"].default
+    assert optimizer is _fit._DEFAULT_OPTIMIZER
+    assert "by default `optax.adam(1e-2)`" in " ".join(cjax.fit.__doc__.split())
+
+
+def test_the_default_check_has_teeth():
+    def fn(x, method="auto", solver=None, tol=1e-8):
+        """**Arguments:**
+
+        - `method`: `"levels"` (default) or `"auto"`.
+        - `solver`: `None` (default): chosen for you.
+        - `tol`: default `1e-6`.
+        """
+
+    count, wrong = _check_defaults("fn", fn, _namespace())
+    assert count == 3
+    assert len(wrong) == 2 and "method" in wrong[0] and "tol" in wrong[1]

@@ -24,11 +24,12 @@ from ._entry import (
     Check as Check,
     Job as Job,
     Param as Param,
-    print_table as print_table,
     Program as Program,
     Row as Row,
     save as save,
     Scene as Scene,
+    Table as Table,
+    WIDTH as WIDTH,
 )
 from .work_precision import WorkPrecision as WorkPrecision
 
@@ -49,9 +50,15 @@ SCENES: dict[str, Scene] = {
 }
 
 
+BADLY_SCALED = (
+    "badly scaled (a ~ 100 next to h ~ 0.4), to the same tolerance: Newton's "
+    "step test does not depend on the scale of the unknowns"
+)
+
+
 def tour_jobs() -> list[Job]:
     """Every scene on its defaults, then the cylinder on a badly scaled budget
-    (without its picture)."""
+    (without its picture; its note says why it is there)."""
     jobs = [job for scene in SCENES.values() for job in scene.jobs()]
     badly_scaled = SCENES["cylinder_volume"].jobs(b=1e-3, l=1e3)
-    return jobs + [replace(job, draw=False) for job in badly_scaled]
+    return jobs + [replace(job, draw=False, note=BADLY_SCALED) for job in badly_scaled]

@@ -1,8 +1,9 @@
 """What a tour entry declares (`Scene`, its `Job`s and their `Program`s) and what
-the entries share: the rows of the table (`Check`, `Row`), the table itself and the
-pictures' figure."""
+the entries share: the rows of the table (`Check`, `Row`), the table itself
+(`Table`) and the pictures' figure."""
 
 import sys
+import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -29,14 +30,13 @@ class Check:
 
 @dataclass(frozen=True)
 class Row:
-    """One line of the table: a `Check` of the scene `scene`, solved in `seconds`."""
+    """One line of the table: a `Check` of the scene `scene`."""
 
     scene: str
     quantity: str
     computed: float
     reference: float
     tolerance: float
-    seconds: float
     scale: float | None = None  # for a closed form that vanishes
 
     @property
@@ -59,13 +59,13 @@ class Program:
 
     - `name`: how the compilation times name it.
     - `make`: returns the function to compile.
-    - `compile_cost`: its measured compilation time, relative: the tour compiles the
-        costliest first, so that the threads finish together (unmeasured: 0, last).
+
+    The tour compiles its programs in the order of the table, so that the first
+    scenes' rows come first.
     """
 
     name: str
     make: Callable[[], Callable]
-    compile_cost: float = 0.0
 
     @cached_property
     def fn(self) -> Callable:
@@ -77,28 +77,32 @@ class Program:
 Pictures = dict[str, Callable]  # file name -> draws on a matplotlib Figure
 
 
-@dataclass
+@dataclass(eq=False)
 class Job:
     """One compiled solve and its checks.
 
-    `finish(out, seconds)` returns the checks of the program's output and its
-    pictures; `label` names the rows (the scene and its changed parameters) and the
-    warning if the solver reports a failure (`out.result`).
+    `finish(out)` returns the checks of the program's output and its pictures;
+    `label` names the rows (the scene and its changed parameters) and the warning if
+    the solver reports a failure (`out.result`); `note`, printed beside the label,
+    says why a row that is not a scene on its defaults is in the table. `seconds`:
+    the median wall clock of `repeats` calls of the compiled solve, once timed.
     """
 
     label: str
     program: Program
     inputs: tuple
-    finish: Callable[[Any, float], tuple[list[Check], Pictures]]
+    finish: Callable[[Any], tuple[list[Check], Pictures]]
     repeats: int = 3
     draw: bool = True  # keep its pictures
+    note: str = ""
+    seconds: float | None = None
 
-    def rows(self, out, seconds: float) -> tuple[list[Row], Pictures]:
+    def rows(self, out) -> tuple[list[Row], Pictures]:
         """The finished checks as rows; warns when the solver reports a failure (it
         shows up in the checks as a wrong number or NaN, too)."""
         if out.result != cjax.RESULTS.successful:
             print(f"warning: {self.label}: {cjax.RESULTS[out.result]}", file=sys.stderr)
-        checks, pictures = self.finish(out, seconds)
+        checks, pictures = self.finish(out)
         rows = [
             Row(
                 self.label,
@@ -106,7 +110,6 @@ class Job:
                 float(c.computed),
                 float(c.reference),
                 c.tolerance,
-                seconds,
                 c.scale,
             )
             for c in checks
@@ -134,6 +137,7 @@ class Scene:
     - `build`: `build(label, **values) -> list[Job]`, every parameter given; raises
         `ValueError` with the reason for impossible parameters.
     - `picture`: what its picture shows (for `tour --help`), if it draws one.
+    - `title`: a few words for the table's heading: what the scene is.
     """
 
     name: str
@@ -141,6 +145,7 @@ class Scene:
     params: dict[str, Param]
     build: Callable[..., list[Job]]
     picture: str = ""
+    title: str = ""
 
     def label(self, values: dict) -> str:
         """The name, with the parameters that differ from their defaults."""
@@ -154,9 +159,13 @@ class Scene:
         values = {k: values.get(k, p.default) for k, p in self.params.items()}
         label = self.label(values)
         try:
-            return self.build(label, **values)
+            jobs = self.build(label, **values)
         except ValueError as e:
             raise SystemExit(f"{label}: {e}") from None
+        for job in jobs:
+            if job.label == label and not job.note:
+                job.note = self.title
+        return jobs
 
 
 def arrays(*values) -> tuple:
@@ -174,27 +183,54 @@ def simulate(system, t1, q0, qd0, args, saveat, **kwargs) -> cjax.Trajectory:
     )
 
 
-def print_table(rows: list[Row]) -> bool:
-    """One line per row, columns separated by at least two spaces; whether every
-    check passed."""
-    width = max(len("scene"), *(len(row.scene) for row in rows))
-    qwidth = max(len(row.quantity) for row in rows)
-    header = (
-        f"{'scene':<{width}}  {'quantity':<{qwidth}}  {'computed':>17}  "
-        f"{'closed form':>17}  {'rel. error':>10}  {'tolerance':>9}  {'time [s]':>9}  "
-        "check"
-    )
-    print(header)
-    print("-" * len(header))
-    ok = True
-    for row in rows:
-        ok &= row.passed
+WIDTH = 100  # the most columns a line of the tour takes
+
+
+class Table:
+    """The table, printed as it grows: a legend and the column names once, then for
+    each job its label (with its note) and its rows, flushed, so that a scene's rows
+    show as soon as it is solved. A row is indented under its label; its columns are
+    separated by at least two spaces."""
+
+    QUANTITY = 32  # the quantity's column
+
+    def __init__(self):
+        self.heading = None
+        self.ok = True
+
+    def start(self) -> None:
         print(
-            f"{row.scene:<{width}}  {row.quantity:<{qwidth}}  {row.computed:>17.11g}  "
-            f"{row.reference:>17.11g}  {row.rel_error:>10.2e}  {row.tolerance:>9.0e}  "
-            f"{row.seconds:>9.4f}  {'ok' if row.passed else 'FAIL'}"
+            textwrap.fill(
+                "Each row checks a computed number against the closed form: rel. "
+                "error = |computed - closed form| / |closed form| (a quantity marked "
+                "(/l), (/R), ... has the closed form 0 and is divided by that scale), "
+                "and passes if it is at most tol.",
+                WIDTH,
+            )
         )
-    return ok
+        print(
+            f"\n  {'quantity':<{self.QUANTITY}}  {'computed':>17}  "
+            f"{'closed form':>17}  {'rel. error':>10}  {'tol.':>5}  check"
+        )
+
+    def add(self, label: str, rows: list[Row], note: str = "") -> bool:
+        """Prints `rows` under `label` (and `note`, for a new heading); whether they
+        all passed."""
+        heading = f"{label}: {note}" if note else label
+        if rows and heading != self.heading:
+            print(textwrap.fill(heading, WIDTH, subsequent_indent="    "))
+            self.heading = heading
+        ok = True
+        for row in rows:
+            ok &= row.passed
+            print(
+                f"  {row.quantity:<{self.QUANTITY}}  {row.computed:>17.11g}  "
+                f"{row.reference:>17.11g}  {row.rel_error:>10.2e}  "
+                f"{row.tolerance:>5.0e}  {'ok' if row.passed else 'FAIL'}"
+            )
+        sys.stdout.flush()
+        self.ok &= ok
+        return ok
 
 
 def save(out: Path, name: str, draw: Callable) -> Path:

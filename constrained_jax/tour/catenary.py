@@ -14,7 +14,6 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "catenary",
     lambda: lambda *values: scene.solve(*values, throw=False),
-    compile_cost=10,
 )
 
 
@@ -29,7 +28,7 @@ def build(
 ) -> list[Job]:
     ref = scene.closed_form(xl, yl, xr, yr, length, rho_g)  # ValueError: impossible
 
-    def finish(sol, seconds):
+    def finish(sol):
         lam = sol.multipliers.integral[0]
         xm = 0.5 * (xl + xr)
         y_mid = sol(jnp.asarray(xm))
@@ -73,4 +72,5 @@ SCENE = Scene(
     },
     build,
     picture="the catenary against its closed form",
+    title="a hanging rope of fixed length (an integral constraint)",
 )

@@ -12,12 +12,10 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "cylinder_volume",
     lambda: lambda b, l: scene.solve(b, l, throw=False),
-    compile_cost=3,
 )
 CAPPED = Program(
     "cylinder_volume_capped",
     lambda: lambda b, l, h_max: scene.solve_capped(b, l, h_max, throw=False),
-    compile_cost=3,
 )
 
 
@@ -25,7 +23,7 @@ def build(label: str, b: float, l: float, h_max: float) -> list[Job]:
     if not (b > 0 and l > 0 and h_max > 0):
         raise ValueError("needs b > 0, l > 0 and h_max > 0.")
 
-    def finish(sol, seconds):
+    def finish(sol):
         ref = scene.closed_form(b, l)
         # Newton on the KKT system to rtol = atol = 1e-10 (relative to the scale).
         checks = [
@@ -58,7 +56,7 @@ def build(label: str, b: float, l: float, h_max: float) -> list[Job]:
 
         return checks, {"cylinder_extremum.png": draw}
 
-    def finish_capped(sol, seconds):
+    def finish_capped(sol):
         ref = scene.capped_closed_form(b, l, h_max)
         # mu vanishes when the cap does not bind: measured against the volume's scale.
         mu_scale = None if bool(ref["active"]) else float(ref["volume"])
@@ -79,7 +77,13 @@ def build(label: str, b: float, l: float, h_max: float) -> list[Job]:
 
     return [
         Job(label, PROGRAM, arrays(b, l), finish),
-        Job(f"{label}[h<={h_max:g}]", CAPPED, arrays(b, l, h_max), finish_capped),
+        Job(
+            f"{label}, capped h <= {h_max:g}",
+            CAPPED,
+            arrays(b, l, h_max),
+            finish_capped,
+            note="an inequality constraint, with its multiplier mu",
+        ),
     ]
 
 
@@ -97,4 +101,5 @@ SCENE = Scene(
     },
     build,
     picture="the cylinder's constrained extremum",
+    title="the largest cylinder V = pi a^2 h for a budget 2 pi a + h^2/b = l",
 )

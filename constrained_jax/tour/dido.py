@@ -12,14 +12,13 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "dido",
     lambda: lambda a, length: scene.solve(a, length, throw=False),
-    compile_cost=4,
 )
 
 
 def build(label: str, a: float, length: float) -> list[Job]:
     ref = scene.closed_form(a, length)  # ValueError: impossible
 
-    def finish(sol, seconds):
+    def finish(sol):
         # Chebyshev(32) on the arc, whose branch points x = +-R lie at a distance
         # rho = (R + sqrt(R^2 - a^2))/a (Bernstein ellipse): pointwise values converge
         # like rho^-32 (as in the tests), integrals like rho^-64 (a-priori rates,
@@ -57,4 +56,5 @@ SCENE = Scene(
         ),
     },
     build,
+    title="Dido's problem: the largest area for a given length",
 )

@@ -15,7 +15,7 @@ def _run(theta0, nu, omega, t1, args):
     return simulate(scene.system(), t1, q0, qd0, args, saveat)
 
 
-PROGRAM = Program("rolling_disk", lambda: _run, compile_cost=8)
+PROGRAM = Program("rolling_disk", lambda: _run)
 
 
 def build(
@@ -36,7 +36,7 @@ def build(
         )
     args = scene.default_args(m=m, R=R, I_roll=I_roll, I_turn=I_turn)
 
-    def finish(traj, seconds):
+    def finish(traj):
         q_ref, lam_ref = scene.closed_form(jnp.asarray(t1), theta0, nu, omega, args)
         energy = 0.5 * ((m * R**2 + I_roll) * nu**2 + I_turn * omega**2)
         radius = abs(R * nu / omega)
@@ -72,4 +72,5 @@ SCENE = Scene(
         "I_turn": Param(0.0625, "moment of inertia about the vertical"),
     },
     build,
+    title="a disk rolling without slipping (a nonholonomic constraint)",
 )

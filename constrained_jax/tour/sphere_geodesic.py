@@ -12,7 +12,6 @@ from ._entry import arrays, Check, Job, Param, Program, Scene
 PROGRAM = Program(
     "sphere_geodesic",
     lambda: lambda start, end, radius: scene.solve(start, end, radius, throw=False),
-    compile_cost=6,
 )
 
 
@@ -24,7 +23,7 @@ def build(label: str, radius: float, angle: float) -> list[Job]:
         raise ValueError("needs radius > 0 and 0 < |angle| < pi.")
     ref = scene.closed_form(start, end, radius)  # ValueError: impossible
 
-    def finish(sol, seconds):
+    def finish(sol):
         mid = jnp.asarray(0.0)
         y_mid, ref_mid = sol(mid), ref["y"](0.0)
         # Chebyshev(24) on an analytic arc: the curve ~1e-13; multiplier functions
@@ -55,4 +54,5 @@ SCENE = Scene(
         "angle": Param(0.8, "angle about the x-axis between the two ends [rad]"),
     },
     build,
+    title="the shortest path on a sphere",
 )

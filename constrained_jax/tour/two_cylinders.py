@@ -21,7 +21,7 @@ def _run(theta0, args):
     return simulate(scene.contact_system(), ts[-1], q0, qd0, args, saveat)
 
 
-PROGRAM = Program("two_cylinders", lambda: _run, compile_cost=16)
+PROGRAM = Program("two_cylinders", lambda: _run)
 
 
 def build(
@@ -35,7 +35,7 @@ def build(
         )
     args = scene.default_args(M=M, alpha=alpha, a=a, R=R, g=g)
 
-    def finish(traj, seconds):
+    def finish(traj):
         rel = traj.release
         angle = float(scene.detachment_angle(theta0, args))
         half = 50  # t*/2, attached
@@ -124,4 +124,5 @@ SCENE = Scene(
     },
     build,
     picture="the two cylinders' normal force against angle with the detachment point",
+    title="a cylinder rolling off a fixed one, until it lets go",
 )

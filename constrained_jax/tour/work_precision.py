@@ -35,18 +35,20 @@ METHODS = {
 
 
 class WorkPrecision:
-    """Its `jobs()` record each method's errors, times and settings; once they have
-    run, `rows()`, `pictures()` and `summary()` report them."""
+    """Its `jobs()` record each method's errors and settings; once they have run
+    and been timed (`Job.seconds`), `rows()`, `pictures()` and `summary()` report
+    them."""
 
     picture = (
         "a work-precision diagram of the pendulum for Tsit5, Dopri8 and the "
         "variational integrator"
     )
+    note = "the variational integrator's order, from the work-precision runs"
 
     def __init__(self):
-        # method -> (errors, times, tags)
-        self.records: dict[str, tuple[list, list, list]] = {}
-        self.lines: list[str] = []
+        # method -> (tag, job) of each setting; (method, tag) -> its error, once run
+        self.runs: dict[str, list[tuple[str, Job]]] = {}
+        self.errors: dict[tuple[str, str], float] = {}
 
     def jobs(self) -> list[Job]:
         """Jobs that time the pendulum over `PERIODS` periods from `theta0 = 1`, for
@@ -61,43 +63,51 @@ class WorkPrecision:
         period = float(pendulum.period(theta, args))
         jobs = []
         for method, (program, kind, settings) in METHODS.items():
-            self.records[method] = ([], [], [])
+            self.runs[method] = []
             for setting in settings:
                 rtol = setting if kind == "rtol" else 1e-10
                 dt0 = period / setting if kind == "steps" else 0.0
                 tag = f"{kind}={setting:g}"
 
-                def finish(traj, seconds, method=method, tag=tag):
-                    err = max(
+                def finish(traj, method=method, tag=tag):
+                    self.errors[method, tag] = max(
                         float(np.max(np.abs(np.asarray(traj.q[-1]) - q0))) / l,
                         float(np.max(np.abs(np.asarray(traj.qd[-1]))))
                         / math.sqrt(g * l),
                     )
-                    ms = seconds * 1e3
-                    self.lines.append(
-                        f"  {method:<30} {tag:<12} error {err:9.2e} {ms:9.3f} ms"
-                    )
-                    errors, times, tags = self.records[method]
-                    # An exact zero (never seen) would not fit a log scale: floor it.
-                    errors.append(max(err, np.finfo(np.float64).eps))
-                    times.append(seconds)
-                    tags.append(tag)
                     return [], {}
 
                 inputs = (theta, *arrays(PERIODS), args, *arrays(rtol, dt0))
                 label = f"work-precision {method} {tag}"
-                jobs.append(Job(label, program, inputs, finish, repeats=5))
+                job = Job(label, program, inputs, finish, repeats=5, note=self.note)
+                self.runs[method].append((tag, job))
+                jobs.append(job)
         return jobs
+
+    @property
+    def records(self) -> dict[str, tuple[list, list, list]]:
+        """method -> (errors, seconds, tags), for `plot.work_precision`."""
+        records = {}
+        for method, runs in self.runs.items():
+            # An exact zero (never seen) would not fit a log scale: floor it.
+            errors = [
+                max(self.errors[method, tag], np.finfo(np.float64).eps)
+                for tag, _ in runs
+            ]
+            records[method] = (
+                errors,
+                [job.seconds for _, job in runs],
+                [t for t, _ in runs],
+            )
+        return records
 
     def rows(self) -> list[Row]:
         """The variational integrator's convergence order, the slope of log(error)
         against log(steps), against its theory (2)."""
-        errors, times, tags = self.records["variational (RATTLE, order 2)"]
+        errors, _, tags = self.records["variational (RATTLE, order 2)"]
         steps = np.asarray([float(t.split("=")[1]) for t in tags])
         slope = float(-np.polyfit(np.log(steps), np.log(np.asarray(errors)), 1)[0])
-        return [
-            Row("work-precision", "RATTLE order (slope)", slope, 2.0, 0.05, sum(times))
-        ]
+        return [Row("work-precision", "RATTLE order (slope)", slope, 2.0, 0.05)]
 
     def pictures(self) -> Pictures:
         def draw(fig):
@@ -115,7 +125,13 @@ class WorkPrecision:
         return {"work_precision.png": draw}
 
     def summary(self) -> str:
+        lines = [
+            f"  {method:<30} {tag:<12} error {self.errors[method, tag]:9.2e} "
+            f"{job.seconds * 1e3:9.3f} ms"
+            for method, runs in self.runs.items()
+            for tag, job in runs
+        ]
         return (
             f"\nwork-precision (pendulum from theta0 = {THETA0:g}, state error "
-            f"after {PERIODS} periods, median of 5 runs):\n" + "\n".join(self.lines)
+            f"after {PERIODS} periods, median of 5 runs):\n" + "\n".join(lines)
         )
