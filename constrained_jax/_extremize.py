@@ -50,6 +50,7 @@ from ._misc import (
     full_precision,
     inexact_asarray,
     lists_as_arrays,
+    warn_near_mapping_limit,
 )
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
@@ -565,6 +566,7 @@ def _extremize(
     multipliers0,
     max_steps,
 ):
+    warn_near_mapping_limit()  # (at trace time: before a compilation)
     # Prologue: argument checks, the flat problem, defaults, the start.
     with_inequalities = not (inequalities is None and lower is None and upper is None)
     if with_inequalities and not isinstance(solver, (AbstractKKTSolver, type(None))):

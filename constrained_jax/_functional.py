@@ -47,6 +47,7 @@ from ._misc import (
     check_signature,
     default_float_dtype,
     full_precision,
+    warn_near_mapping_limit,
 )
 from ._results import raise_if_failed, RESULTS
 from ._solver.kkt_solver import AbstractKKTSolver
@@ -1038,6 +1039,7 @@ def _error_tolerance(discretization, rtol, atol, dtype):
 def _solve_functional(
     functional, args, discretization, solver, y0, max_steps, tolerance
 ):
+    warn_near_mapping_limit()  # (at trace time: before a compilation)
     if not isinstance(functional, Functional):
         raise ValueError(
             "`functional` must be a `cjax.Functional`, got "

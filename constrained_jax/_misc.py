@@ -35,6 +35,41 @@ SIMULATE_TOLERANCE = (1e-8, 100.0)
 CONSISTENCY_TOLERANCE = (1e-8, 1000.0)
 
 
+def _mapping_count_and_limit() -> tuple[int, int] | None:
+    """`(memory mappings of this process, vm.max_map_count)`, or `None` off Linux."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+        with open("/proc/self/maps", "rb") as f:
+            count = sum(1 for _ in f)
+    except (OSError, ValueError):
+        return None
+    return count, limit
+
+
+def warn_near_mapping_limit(fraction: float = 0.75) -> None:
+    """Warn where this process holds more than `fraction` of the memory mappings
+    Linux allows it: called when a solve is traced (a new program is about to be
+    compiled). Each compiled program keeps hundreds of mappings of its code while
+    JAX's caches hold it, and XLA:CPU aborts the process at a compilation past
+    `vm.max_map_count` (docs/upstream/xla.md)."""
+    found = _mapping_count_and_limit()
+    if found is None:
+        return
+    count, limit = found
+    if count > fraction * limit:
+        warnings.warn(
+            f"This process holds {count} memory mappings of the {limit} that Linux "
+            "allows it (`vm.max_map_count`), mostly the code of compiled programs "
+            "that JAX's caches keep. XLA aborts the process when a compilation "
+            "passes the limit. Call `jax.clear_caches()` now (the programs are "
+            "compiled again when next needed), or raise the limit (`sysctl "
+            "vm.max_map_count=262144`, as root).",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+
+
 @functools.cache
 def _warn_float32_once() -> None:
     eps = float(jnp.finfo(jnp.float32).eps)

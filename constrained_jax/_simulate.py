@@ -32,6 +32,7 @@ from ._misc import (
     full_precision,
     inexact_asarray,
     SIMULATE_TOLERANCE,
+    warn_near_mapping_limit,
 )
 from ._phases import (
     initial_contacts,
@@ -490,6 +491,7 @@ class Release(eqx.Module):
 def _simulate(system, plan, options, t0, t1, q0, qd0, args):
     """The jitted core: the start checked, the phases run, the derived quantities
     computed at the save times, the status decided."""
+    warn_near_mapping_limit()  # (at trace time: before a compilation)
     saveat, consistency_tol = options.saveat, options.consistency_tol
     start_ok = all_finite((q0, qd0, args, t0, t1, options.dt0))
     if plan.contacts:

@@ -1,3 +1,4 @@
+import gc
 import importlib.metadata
 import os
 
@@ -36,6 +37,22 @@ os.environ["CONSTRAINED_JAX_COMPILATION_CACHE"] = "0"
 # mixing); float32 checks opt back in explicitly.
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """JAX's caches are emptied after each test file, so that a worker's compiled
+    programs do not pile up over the whole suite.
+
+    Each XLA:CPU executable keeps memory mappings of its code while a cache holds it
+    (hundreds for one of the library's solves), and at Linux's `vm.max_map_count`
+    (65,530 by default) the next compilation aborts the process: an xdist worker died
+    inside `backend_compile_and_load` ("Fatal Python error: Aborted") about once in
+    six full runs, another held 31,000 mappings after 35 minutes. See
+    docs/upstream/xla.md and "Long-lived processes" in docs/sharp-edges.md."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture
