@@ -10,6 +10,7 @@ import lineax as lx
 from jaxtyping import Array, Bool
 
 from .._results import RESULTS
+from .bound_step import bound_step
 from .dense_lu import DenseLU
 from .kkt_solver import AbstractKKTSolver, KKTResidual
 
@@ -170,6 +171,17 @@ class SemismoothNewton(AbstractKKTSolver):
         return _State(done=jnp.array(False), result=RESULTS.successful)
 
     def step(self, residual, z, args, state):
+        if isinstance(residual, KKTResidual) and residual.bounds:
+            z_new, converged, moved, finite = bound_step(self, residual, z, args)
+            result = RESULTS.where(
+                moved,
+                RESULTS.successful,
+                RESULTS.where(
+                    finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective
+                ),
+            )
+            done = converged | jnp.invert(moved)
+            return z_new, _State(done=done, result=result)
         dtype = z.dtype
         eps = jnp.finfo(dtype).eps
         floor = 100 * eps
