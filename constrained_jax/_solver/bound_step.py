@@ -266,6 +266,7 @@ class BoundNewtonSystem:
         self.e = jnp.where(act, a_act * c_act / self.b_act, 0.0)
         self.s_diag = jnp.where(act, -self.e, 1.0)
         self.diag_all = self.proximal[:n] + self.delta
+        self.check_rtol = 1e-6
         if self.dense:
             matrix = jax.vmap(self.reduced_mv)(jnp.eye(n + k, dtype=dtype)).T
             self.factors = jsp.linalg.lu_factor(jnp.where(self.finite, matrix, 0.0))
@@ -277,6 +278,8 @@ class BoundNewtonSystem:
             )
             rtol = max(1e-12, 1000 * float(jnp.finfo(dtype).eps))
             self.krylov = MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, 2 * n + k))
+            # A Newton step is taken as solved to within what MINRES promises.
+            self.check_rtol = max(1e-6, 2 * rtol)
             self.krylov_state = self.krylov.init(operator, {})
 
     def reduced_mv(self, y):
@@ -384,7 +387,7 @@ def bound_step(solver, residual, z, args):
     newton_ok = (
         finite
         & jnp.all(jnp.isfinite(dz_newton))
-        & (check <= 1e-6 * jnp.linalg.norm(r) + jnp.finfo(dtype).tiny)
+        & (check <= system.check_rtol * jnp.linalg.norm(r) + jnp.finfo(dtype).tiny)
     )
     dz_newton = jnp.where(newton_ok, dz_newton, 0.0)
     scale = atol + rtol * jnp.abs(z)
