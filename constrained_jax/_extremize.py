@@ -123,6 +123,16 @@ def _solver_or_default(
     `n + k + m` unknowns of the backward pass."""
     if m and bounds:
         if solver is not None:
+            size = n + k + m
+            if isinstance(solver.linear_solver, DenseLU) and size > DENSE_WARN:
+                warnings.warn(
+                    f"`extremize` with bounds and a solver whose `linear_solver` is "
+                    f"dense: derivatives (the backward pass) form the {size} x {size} "
+                    "matrix of the KKT conditions (n + k + m, bounds add n rows each). "
+                    "Pass `solver=None`, which picks a matrix-free one at this size, "
+                    "or `linear_solver=cjax.MINRES(rtol=1e-12, atol=0.0)`.",
+                    stacklevel=2,
+                )
             return solver
         linear_solver = default_solver(n, k + m, dtype).linear_solver
         return SemismoothNewton(linear_solver=linear_solver)
