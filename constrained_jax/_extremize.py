@@ -979,7 +979,7 @@ def _bound_tangent(diag_h, which, jac_g, n: int, dtype):
         inv = jnp.where(nonzero, 1 / jnp.where(nonzero, eigs, 1.0), 0.0)
         inverse = (vecs * inv[None, :]) @ vecs.T
         rank = jnp.sum(nonzero)
-    dimension = jnp.sum(keep).astype(int) - rank
+    dimension = jnp.sum(jnp.invert(held)) - rank
     free = jnp.arange(n) < dimension
     return (keep, rows, inverse), free
 
