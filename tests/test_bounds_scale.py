@@ -188,7 +188,7 @@ def test_derivatives_against_finite_differences(n):
         np.testing.assert_allclose(tangent, central, rtol=0, atol=1e-7)
 
 
-def test_vmap_and_float32():
+def test_float32_and_vmap():
     n = 2000
     d, c, lo, up = box_problem(n, dtype=np.float32)
     sol = cjax.extremize(
@@ -203,20 +203,21 @@ def test_vmap_and_float32():
     assert sol.x.dtype == jnp.float32
     np.testing.assert_allclose(sol.x, np.clip(c, lo, up), rtol=0, atol=1e-5)
 
-    n = 10
-    d, _, lo, up = box_problem(n)
-    cs = np.random.default_rng(4).normal(size=(4, n)) * 2
+    # A batch with the reduced system formed (n = 10) and with MINRES (n = 600).
+    for n in (10, 600):
+        d, _, lo, up = box_problem(n)
+        cs = np.random.default_rng(4).normal(size=(3, n)) * 2
 
-    def one(c_):
-        out = cjax.extremize(
-            quadratic, jnp.zeros(n), (d, c_), lower=lo, upper=up, sense="minimize",
-            throw=False,
-        )  # fmt: skip
-        return out.x, out.result == cjax.RESULTS.successful
+        def one(c_, d=d, lo=lo, up=up, n=n):
+            out = cjax.extremize(
+                quadratic, jnp.zeros(n), (d, c_), lower=lo, upper=up,
+                sense="minimize", throw=False,
+            )  # fmt: skip
+            return out.x, out.result == cjax.RESULTS.successful
 
-    xs, ok = jax.vmap(one)(jnp.asarray(cs))
-    assert np.all(ok)
-    np.testing.assert_allclose(xs, np.clip(cs, lo, up), rtol=0, atol=1e-12)
+        xs, ok = jax.vmap(one)(jnp.asarray(cs))
+        assert np.all(ok)
+        np.testing.assert_allclose(xs, np.clip(cs, lo, up), rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("n", SIZES)
