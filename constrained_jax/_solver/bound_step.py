@@ -32,9 +32,7 @@ costs `n + k` Jacobian-vector products and one LU factorisation). Above, `u_i` s
 an unknown of its own beside `dx_i` on the active-ish set, which makes the
 symmetric system of `2n + k` unknowns of `BoundNewtonSystem.symmetric_mv`, solved by
 [`constrained_jax.MINRES`][] (its diagonal preconditioner from random probes), each
-product one Jacobian-vector product of the residual; a solve where MINRES does not
-converge forms and factors the reduced matrix instead while it takes at most
-`FALLBACK_BYTES` (128 MiB: `n + k <= 4096` in float64). Everything else the step needs
+product one Jacobian-vector product of the residual. Everything else the step needs
 (the products with the whole Jacobian and its transpose for the Levenberg-Marquardt
 fallback) comes from the linearised residual, with row and column sizes exact where
 `K` is formed and estimated from random probes where it is not.
@@ -54,9 +52,6 @@ from .minres import MINRES
 # more than in the equality case (the active set settles first): MINRES is the
 # cheaper from here on.
 DENSE_BYTES = 2**21
-# Where MINRES does not converge, the reduced matrix is formed and factored for that
-# solve up to this size (as extremize's default linear solver for equalities).
-FALLBACK_BYTES = 2**27
 _PROBES = 8
 
 
@@ -273,7 +268,8 @@ class BoundNewtonSystem:
         self.diag_all = self.proximal[:n] + self.delta
         self.check_rtol = 1e-6
         if self.dense:
-            self.factors = self._factor_reduced()
+            matrix = jax.vmap(self.reduced_mv)(jnp.eye(n + k, dtype=dtype)).T
+            self.factors = jsp.linalg.lu_factor(jnp.where(self.finite, matrix, 0.0))
         else:
             operator = lx.FunctionLinearOperator(
                 self.symmetric_mv,
@@ -302,30 +298,19 @@ class BoundNewtonSystem:
         n, k, p = self.n, self.k, self.p
         f, h = rhs[:n], rhs[n : n + k]
         q = rhs[n + k :].reshape(p, n)
-        a, c = self.a, self.c
+        a, b, c = self.a, self.b, self.c
         eliminated = jnp.invert(self.onehot)
         safe_a = jnp.where(a != 0, a, 1.0)
         f = f - jnp.sum(jnp.where(eliminated, c * q / safe_a, 0.0), axis=0)
         q_act = jnp.sum(jnp.where(self.onehot, q, 0.0), axis=0)
         if not self.dense:
             return self._solve_symmetric(f, h, q, q_act, eliminated, safe_a)
-        return self._solve_reduced(f, h, q, q_act, eliminated, safe_a, self.factors)
-
-    def _factor_reduced(self):
-        """The LU factors of the reduced matrix, formed by `n + k` products."""
-        eye = jnp.eye(self.n + self.k, dtype=self.dtype)
-        matrix = jax.vmap(self.reduced_mv)(eye).T
-        return jsp.linalg.lu_factor(jnp.where(self.finite, matrix, 0.0))
-
-    def _solve_reduced(self, f, h, q, q_act, eliminated, safe_a, factors):
-        """The Newton solve by the factored reduced matrix."""
-        n, k, b = self.n, self.k, self.b
         fixed = jnp.where(self.act, q_act / self.b_act, 0.0)
         # The fixed part of dx moves to the right-hand side.
         out = self.lin(self.tangent(x=fixed))
         f = f - (out[:n] + self.diag_all * fixed)
         h = h - out[n : n + k]
-        y = jsp.linalg.lu_solve(factors, jnp.concatenate([f, h]))
+        y = jsp.linalg.lu_solve(self.factors, jnp.concatenate([f, h]))
         w, dlam = y[:n], y[n:]
         dx = self.s_diag * w + fixed
         dmu_act = self.c_act * w  # C^2 = 1 on the active-ish set
@@ -356,24 +341,6 @@ class BoundNewtonSystem:
         rhs = jnp.concatenate([f, h, fixed])
         value, result, _ = self.krylov.compute(self.krylov_state, rhs, {})
         v = jnp.where(result == lx.RESULTS.successful, value, jnp.nan)
-        if (n + k) ** 2 * jnp.dtype(self.dtype).itemsize <= FALLBACK_BYTES:
-            # Where MINRES does not converge and the reduced matrix is small enough,
-            # it is formed and factored for this solve (as extremize's default
-            # linear solver for equalities falls back on dense LU).
-            failed = (result != lx.RESULTS.successful) & (
-                result != lx.RESULTS.nonfinite_input
-            )
-            args = (f, h, q, q_act, eliminated, safe_a)
-            return lax.cond(
-                failed,
-                lambda: self._solve_reduced(*args, self._factor_reduced()),
-                lambda: self._recover(v, q, eliminated, safe_a),
-            )
-        return self._recover(v, q, eliminated, safe_a)
-
-    def _recover(self, v, q, eliminated, safe_a):
-        """`dz` from the solution `(dx, dlambda, u)` of the symmetric system."""
-        n, k = self.n, self.k
         dx, dlam, u = v[:n], v[n : n + k], v[n + k :]
         dmu_act = self.c_act * u
         dmu = jnp.where(
