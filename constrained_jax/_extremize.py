@@ -53,6 +53,7 @@ from ._misc import (
     warn_near_mapping_limit,
 )
 from ._results import raise_if_failed, RESULTS
+from ._solver.bound_step import conjugate_gradient_mv
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.fallback import Fallback
 from ._solver.kkt_solver import AbstractKKTSolver
@@ -114,8 +115,29 @@ def default_solver(
     return Newton(linear_solver=krylov)
 
 
-def _solver_or_default(solver, n: int, k: int, m: int, dtype) -> AbstractKKTSolver:
-    """`solver`, or the default; a warning where the size makes a dense solve slow."""
+def _solver_or_default(
+    solver, n: int, k: int, m: int, dtype, bounds: bool = False
+) -> AbstractKKTSolver:
+    """`solver`, or the default; a warning where the size makes a dense solve slow.
+
+    With bounds only (`bounds`), the Newton steps reduce to `n + k` unknowns, and the
+    default `SemismoothNewton` takes the linear solver `default_solver` picks for the
+    `n + k + m` unknowns of the backward pass."""
+    if m and bounds:
+        if solver is not None:
+            size = n + k + m
+            if isinstance(solver.linear_solver, DenseLU) and size > DENSE_WARN:
+                warnings.warn(
+                    f"`extremize` with bounds and a solver whose `linear_solver` is "
+                    f"dense: derivatives (the backward pass) form the {size} x {size} "
+                    "matrix of the KKT conditions (n + k + m, bounds add n rows each). "
+                    "Pass `solver=None`, which picks a matrix-free one at this size, "
+                    "or `linear_solver=cjax.MINRES(rtol=1e-12, atol=0.0)`.",
+                    stacklevel=2,
+                )
+            return solver
+        linear_solver = default_solver(n, k + m, dtype).linear_solver
+        return SemismoothNewton(linear_solver=linear_solver)
     if m:
         if n + k + m > DENSE_WARN:
             size = n + k + m
@@ -123,7 +145,8 @@ def _solver_or_default(solver, n: int, k: int, m: int, dtype) -> AbstractKKTSolv
                 f"`extremize` with inequalities forms the dense {size} x {size} "
                 f"Jacobian of the KKT system (n + k + m = {size}; bounds add n rows "
                 "each) and factors it at every step, in O((n + k + m)^3) time: expect "
-                "it to be slow. There is no matrix-free inequality solver yet.",
+                "it to be slow. Bounds alone (`lower`, `upper` without "
+                "`inequalities`) are solved without it.",
                 stacklevel=2,
             )
         return SemismoothNewton() if solver is None else solver
@@ -442,8 +465,11 @@ def extremize(
 
     The complementarity conditions are written with the Fischer-Burmeister function
     `phi(s mu_i, -H_i) = 0`, `phi(a, b) = a + b - sqrt(a^2 + b^2)`, and the square
-    system in `(x, lambda, mu)` is solved by a semismooth Newton method (a dense
-    Jacobian by forward-mode autodiff, LU-factored), damped by the natural monotonicity
+    system in `(x, lambda, mu)` is solved by a semismooth Newton method (with
+    `inequalities`, a dense Jacobian by forward-mode autodiff, LU-factored; with
+    bounds alone, whose rows are diagonal, a reduced system of `n + k` unknowns,
+    LU-factored up to `n + k = 512` in float64 and solved by MINRES above, so that
+    bounds cost about what equality constraints do), damped by the natural monotonicity
     test of [`constrained_jax.Newton`][], with a Levenberg-Marquardt step and an Armijo
     line search on `|r|^2 / 2` where the Newton step fails, each step regularised by
     a proximal term (see [`constrained_jax.SemismoothNewton`][]), from any start,
@@ -587,7 +613,7 @@ def _extremize(
     n, k = _check_structure(
         objective_flat, constraints_flat, x_flat, args, multipliers0
     )
-    m, inequalities_flat = 0, None
+    m, m_user, inequalities_flat = 0, 0, None
     if with_inequalities:
         m_user = check_inequalities(inequalities, x_flat, unravel, args)
         lower = flat_bound(lower, x0, "lower", dtype)
@@ -596,7 +622,9 @@ def _extremize(
         inequalities_flat = flat_inequalities(
             inequalities, unravel, m_user, lower, upper
         )
-    solver = _solver_or_default(solver, n, k, m, dtype)
+    # Bounds alone: the Jacobian of H is diagonal, and never formed.
+    bounds = bool(m) and not m_user
+    solver = _solver_or_default(solver, n, k, m, dtype, bounds)
     # The bounds travel with `args` so that they are differentiated like it.
     aug = (args, lower, upper)
     problem = lagrangian_problem(
@@ -606,6 +634,7 @@ def _extremize(
         x_flat,
         aug,
         sign=1.0 if sense == "minimize" else -1.0,
+        bounds=bounds,
     )
     start_ok = all_finite((x_flat, args, multipliers0)) & _bounds_ok(lower, upper)
     x_safe = jnp.where(start_ok, x_flat, 0.0)
@@ -733,6 +762,9 @@ def _violation_stationary(
             return h
         return jnp.concatenate([h, constraints(x_, args)])
 
+    if problem.bounds:
+        return _bound_violation_stationary(problem, parts, x, aug, num_steps)
+
     def measure(x_):
         values = parts(x_)
         rows = jax.jacrev(parts)(x_)
@@ -751,6 +783,41 @@ def _violation_stationary(
 
     x = jax.lax.fori_loop(0, num_steps, restore, x)
     values, _, gradient, size = measure(x)
+    return (jnp.linalg.norm(gradient) <= 0.01 * size) & jnp.any(values != 0)
+
+
+def _bound_violation_stationary(problem, parts, x, aug, num_steps: int):
+    """`_violation_stationary` for bounds (and `G`) without forming `dH/dx`: the
+    rows of the bounds are `+-e_i`, so the Gauss-Newton matrix is diagonal plus
+    `J^T J` and its products come from autodiff (conjugate gradients, which need
+    at most about `k + 3` steps on it)."""
+    n, m = problem.n, problem.m
+    bound_rows = lambda x_: jnp.abs(problem.bound_derivatives(x_, aug)).ravel()
+
+    def measure(x_):
+        values, vjp = jax.vjp(parts, x_)
+        (gradient,) = vjp(values)
+        g_rows = jax.jacrev(lambda y: parts(y)[m:])(x_)  # (k, n)
+        row_norms = jnp.concatenate([bound_rows(x_), jnp.linalg.norm(g_rows, axis=1)])
+        size = jnp.sum(jnp.abs(values) * row_norms)
+        return values, vjp, g_rows, gradient, size
+
+    def restore(_, x_):
+        values, vjp, g_rows, gradient, _ = measure(x_)
+        _, jvp = jax.linearize(parts, x_)
+        diag = jnp.sum(
+            jnp.square(jvp(jnp.ones_like(x_))[:m].reshape(m // n, n)), axis=0
+        )
+        diag = diag + jnp.sum(jnp.square(g_rows), axis=0)
+        shift = 1e-8 * jnp.maximum(jnp.max(diag), 1.0)
+        apply = lambda v: vjp(jvp(v))[0]
+        dx = conjugate_gradient_mv(apply, shift, -gradient, min(n, 64))
+        x_new = x_ + dx
+        better = jnp.sum(parts(x_new) ** 2) < jnp.sum(values**2)
+        return jnp.where(better & jnp.all(jnp.isfinite(x_new)), x_new, x_)
+
+    x = jax.lax.fori_loop(0, num_steps, restore, x)
+    values, _, _, gradient, size = measure(x)
     return (jnp.linalg.norm(gradient) <= 0.01 * size) & jnp.any(values != 0)
 
 
@@ -812,14 +879,17 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
     xs = zs[:n]
     jac = factors = None
     if m:
-        jac_h = jax.jacrev(problem.inequalities)(xs, aug)
         jac_g = None if k == 0 else constraint_jacobian(constraints, xs, args)
         # Two subspaces (below), one batched eigendecomposition and one batched
         # Lanczos: one compiled body each.
         which = jnp.stack([sol.strict, sol.active])
-        bases, frees = jax.vmap(lambda w: _tangent_basis(jac_h, w, jac_g, n, dtype))(
-            which
-        )
+        if problem.bounds:
+            diag_h = problem.bound_derivatives(xs, aug)
+            tangent = lambda w: _bound_tangent(diag_h, w, jac_g, n, dtype)
+        else:
+            jac_h = jax.jacrev(problem.inequalities)(xs, aug)
+            tangent = lambda w: _tangent_basis(jac_h, w, jac_g, n, dtype)
+        bases, frees = jax.vmap(tangent)(which)
         free = frees[0]
     elif k:
         jac = constraint_jacobian(constraints, xs, args)
@@ -836,7 +906,10 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
     if m:
 
         def extremes_on(basis, mask):
-            project = lambda v: basis @ (mask.astype(dtype) * (basis.T @ v))
+            if problem.bounds:
+                project = lambda v: _bound_project(basis, v)
+            else:
+                project = lambda v: basis @ (mask.astype(dtype) * (basis.T @ v))
             return reduced_hessian_extremes(hvp, project, n, k, dtype)
 
         both = jax.vmap(extremes_on)(bases, frees)
@@ -882,6 +955,43 @@ def _tangent_basis(jac_h, which, jac_g, n: int, dtype):
     eps = jnp.finfo(dtype).eps
     free = eigs <= 1000 * n * eps * jnp.maximum(jnp.max(eigs), 1.0)
     return vecs, free
+
+
+def _bound_tangent(diag_h, which, jac_g, n: int, dtype):
+    """`_tangent_basis` for bounds, whose rows are `+-e_i`: `(basis, free)` with
+    `basis = (keep, rows, inverse)` describing the projection onto the vectors that
+    vanish on the components held by a bound of `which` and lie in the null space of
+    the rows of `G` there (`_bound_project`), and `free` a mask with as many entries
+    set as that subspace has dimensions (the same eigenvalue threshold)."""
+    held = jnp.any(which.reshape(diag_h.shape) & (diag_h != 0), axis=0)
+    keep = jnp.invert(held).astype(dtype)
+    eps = jnp.finfo(dtype).eps
+    if jac_g is None:
+        rows = jnp.zeros((0, n), dtype)
+        inverse = jnp.zeros((0, 0), dtype)
+        rank = 0
+    else:
+        rows = jac_g * keep[None, :]
+        norms = jnp.linalg.norm(jac_g, axis=1, keepdims=True)
+        rows = rows / jnp.where(norms > 0, norms, 1.0)
+        eigs, vecs = jnp.linalg.eigh(rows @ rows.T)
+        # The largest eigenvalue of the whole Gram matrix is at least 1 wherever a
+        # bound holds (its rows are unit vectors).
+        top = jnp.maximum(jnp.max(eigs), jnp.where(jnp.any(held), 1.0, 0.0))
+        nonzero = eigs > 1000 * n * eps * jnp.maximum(top, 1.0)
+        inv = jnp.where(nonzero, 1 / jnp.where(nonzero, eigs, 1.0), 0.0)
+        inverse = (vecs * inv[None, :]) @ vecs.T
+        rank = jnp.sum(nonzero)
+    dimension = jnp.sum(jnp.invert(held)) - rank
+    free = jnp.arange(n) < dimension
+    return (keep, rows, inverse), free
+
+
+def _bound_project(basis, v):
+    """The orthogonal projection of `v` described by `_bound_tangent`."""
+    keep, rows, inverse = basis
+    v = keep * v
+    return v - rows.T @ (inverse @ (rows @ v))
 
 
 def _constraint_statuses(result, kind, g, jac, factors, g0, jac0, xs, x0):

@@ -75,11 +75,14 @@ def _scales(problem, z, args):
     and of the stationarity (`max(1, |grad F|)`, `grad F` the stationarity rows
     at zero multipliers), all max-norms."""
     x, _, mu = problem.split(z)
-    jac_h = jax.jacrev(problem.inequalities)(x, args)
+    if problem.bounds:
+        row_size = jnp.abs(problem.bound_derivatives(x, args)).ravel()
+    else:
+        row_size = jnp.max(jnp.abs(jax.jacrev(problem.inequalities)(x, args)), axis=1)
     zero = jnp.zeros((z.shape[0] - x.shape[0],), z.dtype)
     grad_f = problem.equations(jnp.concatenate([x, zero]), args)[: problem.n]
     x_scale = jnp.maximum(1.0, jnp.max(jnp.abs(x)))
-    h_scale = jnp.maximum(1.0, x_scale * jnp.max(jnp.abs(jac_h), axis=1))
+    h_scale = jnp.maximum(1.0, x_scale * row_size)
     mu_scale = jnp.maximum(1.0, jnp.max(jnp.abs(mu), initial=0.0))
     stat_scale = jnp.maximum(1.0, jnp.max(jnp.abs(grad_f)))
     return mu_scale, h_scale, stat_scale

@@ -213,6 +213,9 @@ class KKTProblem(eqx.Module):
     they hold (`constrained_jax._inequalities`). `symmetric` says whether the
     Jacobian of the equations is symmetric (a KKT matrix) or not (the variational
     integrator's steps), which the implicit derivative passes to the linear solver.
+    `bounds` says that every inequality is a bound: `H` comes in blocks of `n` rows,
+    row `i` of a block depending on `x_i` alone (`lower - x`, `x - upper`), so that
+    `dH/dx` is diagonal in each block and never needs to be formed.
     """
 
     equations: Callable
@@ -222,6 +225,15 @@ class KKTProblem(eqx.Module):
     m: int = eqx.field(static=True, default=0)
     sign: float = eqx.field(static=True, default=1.0)
     symmetric: bool = eqx.field(static=True, default=True)
+    bounds: bool = eqx.field(static=True, default=False)
+
+    def bound_derivatives(self, x, args):
+        """`dH/dx` of a problem whose inequalities are bounds, as its diagonals,
+        shape `(m // n, n)`: `-1` on the rows `lower - x`, `+1` on `x - upper`, `0`
+        for an infinite bound (one product with a vector of ones)."""
+        ones = jnp.ones_like(x)
+        _, diag = jax.jvp(lambda x_: self.inequalities(x_, args), (x,), (ones,))
+        return diag.reshape(self.m // self.n, self.n)
 
     def split(self, z):
         """`(x, lambda, mu)`."""
@@ -269,9 +281,11 @@ def lagrangian_problem(
     x0: Float[Array, " n"],
     args: PyTree,
     sign: float = 1.0,
+    bounds: bool = False,
 ) -> KKTProblem:
     """The `KKTProblem` of extremizing `F(x, args)` subject to `G(x, args) = 0` and
-    `H(x, args) <= 0` (`G`, `H` may be `None`), on flat `x` shaped like `x0`.
+    `H(x, args) <= 0` (`G`, `H` may be `None`), on flat `x` shaped like `x0`
+    (`bounds`: `H` is bounds only, see `KKTProblem`).
 
     The functions are closure-converted here, so they may close over traced arrays,
     which are then differentiated like `args`."""
@@ -285,7 +299,7 @@ def lagrangian_problem(
         inequalities = eqx.filter_closure_convert(inequalities, x0, args)
         m = eqx.filter_eval_shape(inequalities, x0, args).shape[0]
     equations = _Stationarity(objective, constraints, inequalities, n, k)
-    return KKTProblem(equations, inequalities, n, k, m, sign)
+    return KKTProblem(equations, inequalities, n, k, m, sign, bounds=bounds)
 
 
 # ---------------------------------------------------------------------------------
@@ -338,7 +352,9 @@ def _primal(inputs):
         residual = problem.residual
         if problem.m:
             # The layout lets the semismooth solver regularise its steps.
-            residual = KKTResidual(residual, problem.n, problem.sign)
+            residual = KKTResidual(
+                residual, problem.n, problem.sign, problem.k, problem.bounds
+            )
         z, result, stats = solve(residual, z0, start_ok)
     else:
         z, result, stats = strategy(solve, problem.residual, z0, args, start_ok)

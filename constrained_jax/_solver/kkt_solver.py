@@ -25,7 +25,11 @@ class KKTResidual(eqx.Module):
     """A KKT residual `(grad F*, G, phi)` of unknowns `z = (x, lambda, mu)` together
     with the layout a regularised step needs: `n` unknowns `x` first, and the sense
     `sign` (`+1` to minimize, `-1` to maximize) in which the stationarity rows are
-    the gradient of the objective.
+    the gradient of the objective; with `bounds`, also `k` (the constraint rows after
+    the `n` stationarity rows) and the promise that every complementarity row is a
+    bound: the rows after the first `n + k` come in blocks of `n`, row `i` of a
+    block depending on `x_i` and its own multiplier alone, so that their Jacobian is
+    diagonal (`SemismoothNewton` then solves a reduced system of `n + k` unknowns).
 
     Called like the residual itself; a solver that does not use the layout sees a
     plain residual function.
@@ -34,6 +38,8 @@ class KKTResidual(eqx.Module):
     fn: _ResidualFn
     n: int = eqx.field(static=True)
     sign: float = eqx.field(static=True)
+    k: int = eqx.field(static=True, default=0)
+    bounds: bool = eqx.field(static=True, default=False)
 
     def __call__(self, z, args):
         return self.fn(z, args)

@@ -10,6 +10,7 @@ import lineax as lx
 from jaxtyping import Array, Bool
 
 from .._results import RESULTS
+from .bound_step import bound_step
 from .dense_lu import DenseLU
 from .kkt_solver import AbstractKKTSolver, KKTResidual
 
@@ -128,6 +129,17 @@ class SemismoothNewton(AbstractKKTSolver):
     A step that cannot be taken stops the iteration with `RESULTS.line_search_failed`
     (or `RESULTS.nonfinite_objective` where the residual or `K` is NaN or inf).
 
+    Where every complementarity row is a bound (`extremize` with `lower`, `upper`
+    and no `inequalities`: the `KKTResidual` says so), their Jacobian is diagonal,
+    and the same iteration runs without forming the Jacobian of all `n + k + m`
+    unknowns: each bound row is eliminated (an inactive bound: a diagonal term on
+    the Hessian) or fixes its `dx_i` (an active one), exactly, leaving `n + k`
+    unknowns, LU-factored while they take at most 2 MiB and solved by
+    [`constrained_jax.MINRES`][] in a symmetric form of `2n + k` unknowns above;
+    the proximal term's curvature estimate, the row weights and the
+    Levenberg-Marquardt direction (conjugate gradients) then use
+    Jacobian-vector products (`constrained_jax._solver.bound_step`).
+
     [`constrained_jax.Newton`][] hands inequality-constrained solves to the
     `SemismoothNewton` of its own `rtol`, `atol`, `linear_solver` and
     `max_backtracks` (see `complementarity_solver`), so either may be passed. On a
@@ -170,6 +182,17 @@ class SemismoothNewton(AbstractKKTSolver):
         return _State(done=jnp.array(False), result=RESULTS.successful)
 
     def step(self, residual, z, args, state):
+        if isinstance(residual, KKTResidual) and residual.bounds:
+            z_new, converged, moved, finite = bound_step(self, residual, z, args)
+            result = RESULTS.where(
+                moved,
+                RESULTS.successful,
+                RESULTS.where(
+                    finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective
+                ),
+            )
+            done = converged | jnp.invert(moved)
+            return z_new, _State(done=done, result=result)
         dtype = z.dtype
         eps = jnp.finfo(dtype).eps
         floor = 100 * eps
@@ -333,7 +356,9 @@ SemismoothNewton.__init__.__doc__ = """**Arguments:**
     `sqrt(max(rtol, atol, 100 eps))`.
 - `linear_solver`: a Lineax solver for the tangent system of the implicit function
     theorem in the backward pass (symmetric: the strictly active inequalities as
-    equalities). The Newton steps themselves LU-factor the dense Jacobian.
+    equalities). The Newton steps themselves LU-factor the dense Jacobian (or, with
+    bounds alone, the reduced system of `n + k` unknowns, or solve its symmetric
+    form by MINRES: see the class docstring).
     [`constrained_jax.DenseLU`][] (default) or [`constrained_jax.MINRES`][].
 - `max_backtracks`: halvings of the step before a line search gives up.
 """
