@@ -144,6 +144,10 @@ def test_max_entropy_with_upper_bounds(n):
     np.testing.assert_array_equal(sol.active, capped)
 
 
+def _tenth_of_n(x, args):
+    return jnp.sum(x) - 0.1 * x.shape[0]
+
+
 @pytest.mark.parametrize("n", SIZES)
 def test_derivatives_against_finite_differences(n):
     """The envelope theorem for the bounds (`dF/d upper = -mu`, `dF/d lower = +mu`)
@@ -152,12 +156,14 @@ def test_derivatives_against_finite_differences(n):
     d, c, lo, up = box_problem(n, seed=2)
     lo = np.where(np.isfinite(lo), lo, -2.0)
 
+    # One constraint function for every call: a new one per call would be a new
+    # program (compiled again) each time.
     def solve(c_, lo_, up_):
         return cjax.extremize(
             quadratic,
             jnp.zeros(n),
             (d, c_),
-            constraints=lambda x, a: jnp.sum(x) - 0.1 * n,
+            constraints=_tenth_of_n,
             lower=lo_,
             upper=up_,
             sense="minimize",
