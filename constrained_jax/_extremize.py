@@ -53,9 +53,9 @@ from ._misc import (
     warn_near_mapping_limit,
 )
 from ._results import raise_if_failed, RESULTS
-from ._solver.bound_step import conjugate_gradient_mv
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
 from ._solver.fallback import Fallback
+from ._solver.globalization import conjugate_gradient_mv
 from ._solver.kkt_solver import AbstractKKTSolver
 from ._solver.minres import MINRES
 from ._solver.newton import Newton

@@ -783,11 +783,20 @@ class _Continuation(eqx.Module):
             )
 
         one = jnp.ones((), dtype)
-        init_direct = jax.eval_shape(lambda: solve(residual, z0, direct_ok))
-        init_direct = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), init_direct)
-        init = (0 * one, one, 2 * one, jnp.array(0), jnp.array(False), z0, 0, None)
-        init = init[:6] + (jnp.zeros((), init_direct[2]["num_steps"].dtype),)
-        init = init + (init_direct,)
+        # The direct solve's outputs, zeros until the first pass writes them.
+        shapes = jax.eval_shape(lambda: solve(residual, z0, direct_ok))
+        direct = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        steps = jnp.zeros((), shapes[2]["num_steps"].dtype)
+        init = (
+            0 * one,
+            one,
+            2 * one,
+            jnp.array(0),
+            jnp.array(False),
+            z0,
+            steps,
+            direct,
+        )
         t_done, _, _, stage, finished, z_c, steps, direct = jax.lax.while_loop(
             cond, body, init
         )

@@ -44,6 +44,12 @@ import jax.numpy as jnp
 import jax.scipy as jsp
 import lineax as lx
 
+from .globalization import (
+    conjugate_gradient_mv,
+    globalized_step,
+    least_eigenvalue_mv,
+    tolerances,
+)
 from .minres import MINRES
 
 
@@ -53,50 +59,6 @@ from .minres import MINRES
 # cheaper from here on.
 DENSE_BYTES = 2**21
 _PROBES = 8
-
-
-def conjugate_gradient_mv(apply, shift, rhs, max_steps: int):
-    """Solve `(A + shift I) d = rhs`, `A` symmetric positive semidefinite given by
-    `apply`, by conjugate gradients from `d = 0`, at most `max_steps` steps, to a
-    relative residual of `sqrt(eps)`. Every iterate descends the quadratic model, so
-    stopping early still gives a descent direction."""
-    tol = jnp.sqrt(jnp.finfo(rhs.dtype).eps) * jnp.linalg.norm(rhs)
-
-    def cond(c):
-        _, _, _, rr, it = c
-        return (it < max_steps) & (jnp.sqrt(rr) > tol)
-
-    def body(c):
-        d, r, p, rr, it = c
-        ap = apply(p) + shift * p
-        pap = jnp.dot(p, ap)
-        alpha = jnp.where(pap > 0, rr / jnp.where(pap > 0, pap, 1.0), 0.0)
-        d = d + alpha * p
-        r = r - alpha * ap
-        rr_new = jnp.dot(r, r)
-        p = r + rr_new / jnp.where(rr > 0, rr, 1.0) * p
-        it = jnp.where(pap > 0, it + 1, max_steps)
-        return d, r, p, rr_new, it
-
-    zero = jnp.zeros_like(rhs)
-    d, *_ = lax.while_loop(cond, body, (zero, rhs, rhs, jnp.dot(rhs, rhs), 0))
-    return d
-
-
-def least_eigenvalue_mv(matvec, size: int, dtype, bound, num_steps: int = 32):
-    """An estimate of the least eigenvalue of a symmetric operator, by power
-    iteration on `bound I - A` from a fixed start (`bound` at least the spectral
-    radius); the Rayleigh quotient bounds it from above."""
-    v = 1.0 + jnp.arange(size, dtype=dtype) / size
-    v = v / jnp.linalg.norm(v)
-
-    def body(_, v):
-        w = bound * v - jnp.where(jnp.isfinite(av := matvec(v)), av, 0.0)
-        norm = jnp.linalg.norm(w)
-        return jnp.where(norm > 0, w / jnp.where(norm > 0, norm, 1.0), v)
-
-    v = lax.fori_loop(0, num_steps, body, v)
-    return jnp.dot(v, matvec(v))
 
 
 class BoundNewtonSystem:
@@ -357,9 +319,7 @@ def bound_step(solver, residual, z, args):
     finite)`."""
     dtype = z.dtype
     eps = jnp.finfo(dtype).eps
-    floor = 100 * eps
-    rtol = jnp.maximum(jnp.asarray(solver.rtol, dtype), floor)
-    atol = jnp.maximum(jnp.asarray(solver.atol, dtype), floor)
+    rtol, atol = tolerances(solver, dtype)
     n = residual.n
     system = BoundNewtonSystem(residual, z, args)
     r = system.r
@@ -378,45 +338,8 @@ def bound_step(solver, residual, z, args):
     weight = 1 / jnp.where(row_size > 0, row_size, 1.0)
     psi = 0.5 * jnp.dot(weight * r, weight * r)
     grad_psi = system.rmv(weight**2 * r)
-    one = jnp.ones((), dtype)
 
     system.prepare()
-    newton_solve = system.solve
-    dz_newton = newton_solve(-r)
-    check = jnp.linalg.norm(system.mv(dz_newton) + r)
-    newton_ok = (
-        finite
-        & jnp.all(jnp.isfinite(dz_newton))
-        & (check <= system.check_rtol * jnp.linalg.norm(r) + jnp.finfo(dtype).tiny)
-    )
-    dz_newton = jnp.where(newton_ok, dz_newton, 0.0)
-    scale = atol + rtol * jnp.abs(z)
-    norm = lambda v: jnp.sqrt(jnp.mean(jnp.square(v / scale)))
-    step_norm = norm(dz_newton)
-    converged = (psi == 0) | (newton_ok & (step_norm < 1))
-
-    def contraction(alpha):
-        simplified = newton_solve(-res(z + alpha * dz_newton))
-        theta = norm(simplified) / jnp.where(step_norm > 0, step_norm, 1.0)
-        return jnp.where(jnp.isfinite(theta), theta, jnp.inf)
-
-    def nm_cond(c):
-        alpha, theta, it = c
-        return (
-            jnp.invert(theta <= 1 - alpha / 4)
-            & (it < solver.max_backtracks)
-            & newton_ok
-        )
-
-    def nm_body(c):
-        alpha, _, it = c
-        alpha = 0.5 * alpha
-        return alpha, contraction(alpha), it + 1
-
-    # Converged: no trial point is needed.
-    theta0 = lax.cond(converged, lambda: jnp.zeros((), dtype), lambda: contraction(one))
-    alpha_n, theta, _ = lax.while_loop(nm_cond, nm_body, (one, theta0, 0))
-    ok_n = newton_ok & (theta <= 1 - alpha_n / 4)
 
     def lm_direction():
         gram_max = system.gram_diagonal_max(weight)
@@ -428,38 +351,20 @@ def bound_step(solver, residual, z, args):
         dz = conjugate_gradient_mv(apply, nu, -grad_psi, steps)
         return jnp.where(jnp.all(jnp.isfinite(dz)), dz, 0.0)
 
-    def merit(z_):
-        r_ = weight * res(z_)
-        value = 0.5 * jnp.dot(r_, r_)
-        return jnp.where(jnp.isfinite(value), value, jnp.inf)
-
-    def armijo():
-        dz = lm_direction()
-        slope = jnp.dot(grad_psi, dz)
-        descent = slope < 0
-
-        def accept(alpha):
-            return merit(z + alpha * dz) <= psi + 1e-4 * alpha * slope
-
-        def cond(c):
-            alpha, ok, it = c
-            return jnp.invert(ok) & (it < solver.max_backtracks) & descent
-
-        def body(c):
-            alpha, _, it = c
-            alpha = 0.5 * alpha
-            return alpha, accept(alpha), it + 1
-
-        alpha, ok, _ = lax.while_loop(cond, body, (one, accept(one), 0))
-        return alpha * dz, ok & descent
-
-    dz_lm, ok_lm = lax.cond(
-        ok_n | converged | jnp.invert(finite),
-        lambda: (jnp.zeros_like(z), jnp.array(False)),
-        armijo,
+    z_new, converged, moved = globalized_step(
+        z,
+        r,
+        res,
+        finite,
+        weight,
+        psi,
+        grad_psi,
+        system.solve,
+        system.mv,
+        system.check_rtol,
+        lm_direction,
+        rtol,
+        atol,
+        solver.max_backtracks,
     )
-    dz = jnp.where(ok_n, alpha_n * dz_newton, dz_lm)
-    dz = jnp.where(converged, dz_newton, dz)
-    moved = converged | ok_n | ok_lm
-    z_new = jnp.where(moved, z + dz, z)
     return z_new, converged, moved, finite

@@ -3,7 +3,6 @@ complementarity rows (inequality constraints), which is only semismooth."""
 
 import equinox as eqx
 import jax
-import jax.lax as lax
 import jax.numpy as jnp
 import jax.scipy as jsp
 import lineax as lx
@@ -12,6 +11,12 @@ from jaxtyping import Array, Bool
 from .._results import RESULTS
 from .bound_step import bound_step
 from .dense_lu import DenseLU
+from .globalization import (
+    conjugate_gradient_mv,
+    globalized_step,
+    least_eigenvalue_mv,
+    tolerances,
+)
 from .kkt_solver import AbstractKKTSolver, KKTResidual
 
 
@@ -27,38 +32,10 @@ def conjugate_gradient(matrix, shift, rhs):
     direction of its quadratic model, `rhs . d > 0`, so with `rhs = -grad Psi` the
     direction descends `Psi` however early the iteration stops.
     """
-    size = rhs.shape[0]
-    tol = jnp.sqrt(jnp.finfo(rhs.dtype).eps) * jnp.linalg.norm(rhs)
-
-    def apply(v):
-        return matrix @ v + shift * v
-
-    def cond(c):
-        _, r, _, rr, it = c
-        return (it < size) & (jnp.sqrt(rr) > tol)
-
-    def body(c):
-        d, r, p, rr, it = c
-        ap = apply(p)
-        pap = jnp.dot(p, ap)
-        alpha = rr / jnp.where(pap > 0, pap, 1.0)
-        alpha = jnp.where(pap > 0, alpha, 0.0)
-        d = d + alpha * p
-        r = r - alpha * ap
-        rr_new = jnp.dot(r, r)
-        beta = rr_new / jnp.where(rr > 0, rr, 1.0)
-        p = r + beta * p
-        # A non-positive curvature (round-off) ends the iteration where it is.
-        it = jnp.where(pap > 0, it + 1, size)
-        return d, r, p, rr_new, it
-
-    zero = jnp.zeros_like(rhs)
-    rr0 = jnp.dot(rhs, rhs)
-    d, *_ = lax.while_loop(cond, body, (zero, rhs, rhs, rr0, 0))
-    return d
+    return conjugate_gradient_mv(lambda v: matrix @ v, shift, rhs, rhs.shape[0])
 
 
-def _least_eigenvalue(matrix, num_steps: int = 32):
+def _least_eigenvalue(matrix):
     """An estimate of the least eigenvalue of the symmetric part of `matrix`, by
     power iteration on `L I - A` (`L = |A|_inf`, a bound on the spectral radius,
     so that `L I - A` is positive semidefinite), from a fixed start. Matrix-vector
@@ -67,18 +44,8 @@ def _least_eigenvalue(matrix, num_steps: int = 32):
     errs on the side of less regularisation, which the globalisation then guards."""
     a = 0.5 * (matrix + matrix.T)
     a = jnp.where(jnp.isfinite(a), a, 0.0)
-    size = a.shape[0]
     bound = jnp.max(jnp.sum(jnp.abs(a), axis=1))
-    v = 1.0 + jnp.arange(size, dtype=a.dtype) / size
-    v = v / jnp.linalg.norm(v)
-
-    def body(_, v):
-        w = bound * v - a @ v
-        norm = jnp.linalg.norm(w)
-        return jnp.where(norm > 0, w / jnp.where(norm > 0, norm, 1.0), v)
-
-    v = lax.fori_loop(0, num_steps, body, v)
-    return jnp.dot(v, a @ v)
+    return least_eigenvalue_mv(lambda v: a @ v, a.shape[0], a.dtype, bound)
 
 
 class _State(eqx.Module):
@@ -184,20 +151,24 @@ class SemismoothNewton(AbstractKKTSolver):
     def step(self, residual, z, args, state):
         if isinstance(residual, KKTResidual) and residual.bounds:
             z_new, converged, moved, finite = bound_step(self, residual, z, args)
-            result = RESULTS.where(
-                moved,
-                RESULTS.successful,
-                RESULTS.where(
-                    finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective
-                ),
-            )
-            done = converged | jnp.invert(moved)
-            return z_new, _State(done=done, result=result)
+        else:
+            z_new, converged, moved, finite = self._dense_step(residual, z, args)
+        result = RESULTS.where(
+            moved,
+            RESULTS.successful,
+            RESULTS.where(
+                finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective
+            ),
+        )
+        done = converged | jnp.invert(moved)
+        return z_new, _State(done=done, result=result)
+
+    def _dense_step(self, residual, z, args):
+        """The step with the Jacobian of the whole residual formed (by `jacfwd`) and
+        LU-factored. Returns `(z, converged, moved, finite)`."""
         dtype = z.dtype
         eps = jnp.finfo(dtype).eps
-        floor = 100 * eps
-        rtol = jnp.maximum(jnp.asarray(self.rtol, dtype), floor)
-        atol = jnp.maximum(jnp.asarray(self.atol, dtype), floor)
+        rtol, atol = tolerances(self, dtype)
         r = residual(z, args)
         # The proximal (regularised) residual, centred at this iterate: the KKT
         # residual of extremizing `F - s rho |x - x_k|^2 / 2` instead (the proximal
@@ -237,103 +208,41 @@ class SemismoothNewton(AbstractKKTSolver):
         weight = 1 / jnp.where(row_size > 0, row_size, 1.0)
         psi = 0.5 * jnp.dot(weight * r, weight * r)
         grad_psi = jac.T @ (weight**2 * r)
-        one = jnp.ones((), dtype)
 
         # The Newton direction, if the Jacobian is (numerically) invertible; the
         # same factorisation gives the simplified Newton corrections.
         factors = jsp.linalg.lu_factor(jnp.where(finite, jac, 0.0))
         newton_solve = lambda rhs: jsp.linalg.lu_solve(factors, rhs)
-        dz_newton = newton_solve(-r)
-        check = jnp.linalg.norm(jac @ dz_newton + r)
-        newton_ok = (
-            finite
-            & jnp.all(jnp.isfinite(dz_newton))
-            & (check <= 1e-6 * jnp.linalg.norm(r) + jnp.finfo(dtype).tiny)
-        )
-        dz_newton = jnp.where(newton_ok, dz_newton, 0.0)
-        scale = atol + rtol * jnp.abs(z)
-        norm = lambda v: jnp.sqrt(jnp.mean(jnp.square(v / scale)))
-        step_norm = norm(dz_newton)
-        converged = (psi == 0) | (newton_ok & (step_norm < 1))
 
-        # Deuflhard's natural monotonicity test on the Newton direction, as in
-        # `Newton`: the simplified correction at the trial point must shrink.
-        def contraction(alpha):
-            simplified = newton_solve(-res(z + alpha * dz_newton))
-            theta = norm(simplified) / jnp.where(step_norm > 0, step_norm, 1.0)
-            return jnp.where(jnp.isfinite(theta), theta, jnp.inf)
-
-        def nm_cond(c):
-            alpha, theta, it = c
-            return (
-                jnp.invert(theta <= 1 - alpha / 4)
-                & (it < self.max_backtracks)
-                & newton_ok
+        def lm_direction():
+            scaled_jac = weight[:, None] * jac
+            jtj = scaled_jac.T @ scaled_jac
+            nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(
+                jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
             )
+            nu = jnp.maximum(nu, 1e3 * eps * jnp.max(jnp.abs(jtj)))
+            dz = conjugate_gradient(
+                jnp.where(finite, jtj, 0.0), jnp.where(finite, nu, 1.0), -grad_psi
+            )
+            return jnp.where(jnp.all(jnp.isfinite(dz)), dz, 0.0)
 
-        def nm_body(c):
-            alpha, _, it = c
-            alpha = 0.5 * alpha
-            return alpha, contraction(alpha), it + 1
-
-        alpha_n, theta, _ = lax.while_loop(nm_cond, nm_body, (one, contraction(one), 0))
-        ok_n = newton_ok & (theta <= 1 - alpha_n / 4)
-
-        # Otherwise Levenberg-Marquardt, always a descent direction of Psi, with an
-        # Armijo line search on Psi.
-        scaled_jac = weight[:, None] * jac
-        jtj = scaled_jac.T @ scaled_jac
-        nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(
-            jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
+        z_new, converged, moved = globalized_step(
+            z,
+            r,
+            res,
+            finite,
+            weight,
+            psi,
+            grad_psi,
+            newton_solve,
+            lambda v: jac @ v,
+            1e-6,
+            lm_direction,
+            rtol,
+            atol,
+            self.max_backtracks,
         )
-        nu = jnp.maximum(nu, 1e3 * eps * jnp.max(jnp.abs(jtj)))
-        dz_lm = conjugate_gradient(
-            jnp.where(finite, jtj, 0.0), jnp.where(finite, nu, 1.0), -grad_psi
-        )
-        dz_lm = jnp.where(jnp.all(jnp.isfinite(dz_lm)), dz_lm, 0.0)
-
-        def merit(z_):
-            r_ = weight * res(z_)
-            value = 0.5 * jnp.dot(r_, r_)
-            return jnp.where(jnp.isfinite(value), value, jnp.inf)
-
-        def armijo(dz):
-            slope = jnp.dot(grad_psi, dz)
-            descent = slope < 0
-
-            def accept(alpha):
-                return merit(z + alpha * dz) <= psi + 1e-4 * alpha * slope
-
-            def cond(c):
-                alpha, ok, it = c
-                return jnp.invert(ok) & (it < self.max_backtracks) & descent
-
-            def body(c):
-                alpha, _, it = c
-                alpha = 0.5 * alpha
-                return alpha, accept(alpha), it + 1
-
-            alpha, ok, _ = lax.while_loop(cond, body, (one, accept(one), 0))
-            return alpha, ok & descent
-
-        alpha_lm, ok_lm = lax.cond(
-            ok_n | converged,
-            lambda: (jnp.zeros((), dtype), jnp.array(False)),
-            lambda: armijo(dz_lm),
-        )
-        dz = jnp.where(ok_n, alpha_n * dz_newton, alpha_lm * dz_lm)
-        dz = jnp.where(converged, dz_newton, dz)
-        moved = converged | ok_n | ok_lm
-        z_new = jnp.where(moved, z + dz, z)
-        result = RESULTS.where(
-            moved,
-            RESULTS.successful,
-            RESULTS.where(
-                finite, RESULTS.line_search_failed, RESULTS.nonfinite_objective
-            ),
-        )
-        done = converged | jnp.invert(moved)
-        return z_new, _State(done=done, result=result)
+        return z_new, converged, moved, finite
 
     def terminate(self, residual, z, args, state):
         del residual, z, args
