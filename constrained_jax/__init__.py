@@ -13,6 +13,7 @@ from ._compilation_cache import (
 )
 from ._constraints import (
     AbstractConstraint as AbstractConstraint,
+    Coulomb as Coulomb,
     Holonomic as Holonomic,
     Pfaffian as Pfaffian,
     Unilateral as Unilateral,

@@ -260,6 +260,69 @@ def _check_shape(kind, signature, out, n, ndim):
     return 1 if out.ndim == 0 else out.shape[0]
 
 
+class Coulomb(eqx.Module):
+    """Coulomb friction on the tangential row of a contact: the `friction` of a
+    [`constrained_jax.Unilateral`][].
+
+    The contact sticks while the tangential multiplier stays inside the friction
+    cone, `|lambda_t| <= mu_s N` (`N = sign * lambda_1 >= 0` the contact's pushing
+    normal multiplier): `tangent` is then a constraint, `v_t = 0`. Where
+    `|lambda_t|` reaches `mu_s N`, the contact slips: the tangential row is dropped
+    and replaced by the kinetic friction force `lambda_t = -mu_k N sign(v_t)`
+    (opposing the slip), with `N` the normal multiplier of the same saddle-point
+    solve (the coupled system, not a lagged force). Where the slip velocity `v_t`
+    comes back to zero, the contact sticks again if the sticking multipliers lie
+    inside the cone there, and otherwise slips the other way.
+
+    **Arguments:**
+
+    - `tangent`: a `cjax.Pfaffian` or `cjax.Holonomic` with one row, whose velocity
+        residual `A_t qdot + a_t` is the slip velocity `v_t` of the contact (the
+        lecture's no-slip row of the two cylinders, the horizontal velocity of a
+        block's contact point).
+    - `mu_s`: the static coefficient, a float `>= 0` or a callable `mu_s(args)`
+        (traced: differentiable and `vmap`-able).
+    - `mu_k`: the kinetic coefficient, `0 <= mu_k <= mu_s`, a float or a callable
+        `mu_k(args)`; default `mu_s`.
+
+    Values out of range (a callable giving `mu_k > mu_s`, a negative or NaN
+    coefficient) stop the run with `RESULTS.invalid_friction`. Friction acts
+    during contact phases; the impulse of an impact is frictionless (normal rows
+    only). One tangential row: planar contact.
+    """
+
+    tangent: AbstractConstraint
+    mu_s: float | Callable
+    mu_k: float | Callable
+
+    def __init__(self, tangent, mu_s, mu_k=None):
+        if not isinstance(tangent, (Holonomic, Pfaffian)):
+            raise ValueError(
+                "`cjax.Coulomb` takes the contact's tangential row as a "
+                "`cjax.Pfaffian` (or `cjax.Holonomic`) with one row, its slip "
+                f"velocity; got {type(tangent).__name__}."
+            )
+        mu_s = _parameter("mu_s", mu_s, upper=np.inf, owner="cjax.Coulomb")
+        mu_k = mu_s if mu_k is None else mu_k
+        # (A finite kinetic coefficient: `mu_s = inf` never slips, `mu_k = inf` would
+        # be an infinite force.)
+        mu_k = _parameter(
+            "mu_k", mu_k, upper=float(np.finfo(float).max), owner="cjax.Coulomb"
+        )
+        if not callable(mu_s) and not callable(mu_k) and mu_k > mu_s:
+            raise ValueError(
+                f"The kinetic coefficient must not exceed the static one; got "
+                f"mu_k = {mu_k!r} > mu_s = {mu_s!r}."
+            )
+        self.tangent = tangent
+        self.mu_s = mu_s
+        self.mu_k = mu_k
+
+    def coefficients(self, args) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        """`(mu_s, mu_k)` (floats, or the callables at `args`)."""
+        return _evaluate(self.mu_s, args), _evaluate(self.mu_k, args)
+
+
 class Unilateral(AbstractConstraint):
     """Constraints that can push but not pull: they hold while the multiplier of their
     first row keeps the sign `sign`, and are released together when it crosses zero.
@@ -315,6 +378,11 @@ class Unilateral(AbstractConstraint):
         `sqrt(2 g delta) / 64`, `g` the acceleration towards the contact, are not
         resolved: 1e-5 m/s for a ball under 9.81 m/s^2 in float64, 2e-3 m/s in
         float32. A `rest_speed` below that is never reached.)
+    - `friction`: a [`constrained_jax.Coulomb`][] on the contact's tangential row,
+        or `None` (default: no tangential row, or one held by any force as a
+        member constraint). Its row is the group's last; its multiplier is the
+        friction force, sticking or slipping. Stick-slip transitions are events:
+        `simulate(..., max_events=N)` (with a `restitution`) runs it.
     """
 
     constraints: tuple[AbstractConstraint, ...]
@@ -323,6 +391,7 @@ class Unilateral(AbstractConstraint):
     gap: Callable | None = None
     restitution: float | Callable | None = None
     rest_speed: float | Callable = 0.0
+    friction: Coulomb | None = None
 
     def __init__(
         self,
@@ -331,6 +400,7 @@ class Unilateral(AbstractConstraint):
         gap: Callable | None = None,
         restitution: float | Callable | None = None,
         rest_speed: float | Callable = 0.0,
+        friction: Coulomb | None = None,
     ):
         if isinstance(constraints, AbstractConstraint):
             constraints = (constraints,)
@@ -358,6 +428,14 @@ class Unilateral(AbstractConstraint):
                 )
             restitution = _parameter("restitution", restitution, upper=1.0)
         rest_speed = _parameter("rest_speed", rest_speed, upper=np.inf)
+        if friction is not None:
+            if not isinstance(friction, Coulomb):
+                raise ValueError(
+                    "`friction` must be a `cjax.Coulomb(tangent, mu_s, mu_k)`; got "
+                    f"{type(friction).__name__}."
+                )
+            constraints = constraints + (friction.tangent,)
+        self.friction = friction
         self.constraints = constraints
         self.sign = float(sign)
         self.gap = gap
@@ -417,11 +495,11 @@ class Unilateral(AbstractConstraint):
         return sum(c.num_constraints(n, args, dtype) for c in self.constraints)
 
 
-def _parameter(name, value, upper):
+def _parameter(name, value, upper, owner="cjax.Unilateral"):
     """A float in `[0, upper]` (checked here) or a callable of `args` (checked at run
-    time, `RESULTS.invalid_restitution`)."""
+    time, `RESULTS.invalid_restitution`, `RESULTS.invalid_friction`)."""
     if callable(value):
-        check_signature(value, f"`{name}` of `cjax.Unilateral`", f"{name}(args)")
+        check_signature(value, f"`{name}` of `{owner}`", f"{name}(args)")
         return value
     try:
         value = float(value)

@@ -50,6 +50,11 @@ class Events(eqx.Module):
     - `q`, `qd`: the state just after the event.
     - `mode`: the contact mode at the end of the run (bit `i` set when group `i`, in
         the order of the system's `Unilateral` groups, is attached).
+    - `slip`: with [`constrained_jax.Coulomb`][] friction on some group, the event's
+        group's slip state after it: `0` sticking (or free), `+1` / `-1` slipping
+        with its slip velocity `v_t` positive / negative (`None` without friction).
+        A stick-slip transition is an event with `impact = False`, `attached =
+        True` (a release has `attached = False`).
     """
 
     count: Int[Array, ""]
@@ -62,6 +67,7 @@ class Events(eqx.Module):
     q: Float[Array, "E n"]
     qd: Float[Array, "E n"]
     mode: Int[Array, ""]
+    slip: Float[Array, " E"] | None = None
 
 
 def back_to_contact(gap, q, qd, qdd, t, t_min, args, iterations: int = 6):

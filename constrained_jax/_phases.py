@@ -37,7 +37,7 @@ from ._diffrax_integrate import diffeqsolve
 from ._misc import all_finite, float_tolerance
 from ._results import RESULTS
 from ._stabilization import AbstractStabilization, Unstabilized
-from ._system import LagrangianSystem, off_constraints
+from ._system import friction_dynamics, LagrangianSystem, off_constraints, project
 from ._variational_integrator import (
     AbstractVariationalIntegrator,
     integrate_variational,
@@ -75,6 +75,8 @@ class Plan(eqx.Module):
     rows: tuple[tuple[int, int], ...] = eqx.field(static=True)
     k: int = eqx.field(static=True)
     max_events: int | None = eqx.field(static=True)
+    # Per group, the row of its `Coulomb` friction's tangent (its last), or -1.
+    tangents: tuple[int, ...] = eqx.field(static=True, default=())
 
     @classmethod
     def make(cls, system: LagrangianSystem, n: int, args, dtype, max_events):
@@ -82,7 +84,25 @@ class Plan(eqx.Module):
         starts = np.cumsum([0] + sizes)
         indices = tuple(i for i, c in enumerate(system.constraints) if c.unilateral)
         rows = tuple((int(starts[i]), int(starts[i + 1])) for i in indices)
-        return cls(indices, rows, int(starts[-1]), max_events)
+        tangents = []
+        for i, (_, stop) in zip(indices, rows, strict=True):
+            friction = system.constraints[i].friction
+            if friction is None:
+                tangents.append(-1)
+                continue
+            if friction.tangent.num_constraints(n, args, dtype) != 1:
+                raise ValueError(
+                    "The `tangent` of a `cjax.Coulomb` must have one row (the slip "
+                    "velocity of a planar contact); got "
+                    f"{friction.tangent.num_constraints(n, args, dtype)}."
+                )
+            tangents.append(stop - 1)
+        return cls(indices, rows, int(starts[-1]), max_events, tuple(tangents))
+
+    @property
+    def friction(self) -> bool:
+        """Whether some group has Coulomb friction (a slip state per group)."""
+        return any(t >= 0 for t in self.tangents)
 
     @property
     def contacts(self) -> bool:
@@ -115,12 +135,34 @@ class Plan(eqx.Module):
             out[i, start:stop] = True
         return out
 
-    def row_mask(self, active: Bool[Array, " g"]) -> Bool[Array, " k"]:
+    def row_mask(self, active: Bool[Array, " g"], slip=None) -> Bool[Array, " k"]:
         """The rows that hold when the groups `active` are attached: the bilateral
-        rows and the attached groups'."""
+        rows and the attached groups', less the tangential row of a group that slips
+        (`slip`, per group: `0` sticking, `+-1` the slip direction)."""
         member = jnp.asarray(self.membership())
         free_rows = jnp.any(member & jnp.invert(active)[:, None], axis=0)
+        if slip is not None and self.friction:
+            free_rows = free_rows.at[self._tangent_rows()].set(
+                free_rows[self._tangent_rows()] | (slip[self._friction_groups()] != 0)
+            )
         return jnp.invert(free_rows)
+
+    def slip_rows(self, slip) -> Float[Array, " k"] | None:
+        """Per row of `A`: the slip direction on a slipping tangential row, `0`
+        elsewhere (`None` without friction)."""
+        if slip is None or not self.friction:
+            return None
+        out = jnp.zeros((self.k,), slip.dtype)
+        return out.at[self._tangent_rows()].set(slip[self._friction_groups()])
+
+    def tangents_array(self):
+        return jnp.asarray(self.tangents, int)
+
+    def _friction_groups(self) -> np.ndarray:
+        return np.asarray([i for i, t in enumerate(self.tangents) if t >= 0], int)
+
+    def _tangent_rows(self) -> np.ndarray:
+        return np.asarray([t for t in self.tangents if t >= 0], int)
 
 
 class Options(eqx.Module):
@@ -162,6 +204,8 @@ class Run(eqx.Module):
     stats: dict
     events: Events | None = None
     release: tuple | None = None
+    slip: Float[Array, "T g"] | None = None
+    slip_end: Float[Array, " g"] | None = None
 
 
 class Phase(eqx.Module):
@@ -381,30 +425,68 @@ def _(solver: AbstractVariationalIntegrator):
 
 
 def initial_contacts(plan: Plan, system, q0, qd0, t0, args, tol):
-    """The groups attached at the start, and whether the start is consistent with
-    them. With impacts (`max_events`): a group is attached when its gap and the
-    velocity residual of its rows are zero (to `tol`, relative to `1 + |q|` and
-    `1 + |qd|`), free otherwise; no gap may be negative (penetration) beyond `tol`.
-    A release run starts attached. The rows of the bilateral constraints and of the
-    attached groups must hold (positions and velocities, to `tol`)."""
+    """The groups attached at the start, their slip states, and whether the start
+    is consistent with them. With impacts (`max_events`): a group is attached when
+    its gap and the velocity residual of its normal rows are zero (to `tol`,
+    relative to `1 + |q|` and `1 + |qd|`), free otherwise; no gap may be negative
+    (penetration) beyond `tol`; an attached group with friction slips where its
+    slip velocity is not zero, or where sticking would need a force outside its
+    cone (`decide_slip`). A release run starts attached. The rows of the bilateral
+    constraints and of the attached groups must hold (positions and velocities, to
+    `tol`). The slip states are `None` without friction."""
     groups = plan.groups(system)
     if not plan.impacts:
         active = jnp.ones((len(groups),), bool)
-        return active, jnp.invert(off_constraints(system, q0, qd0, t0, args, tol))
+        ok = jnp.invert(off_constraints(system, q0, qd0, t0, args, tol))
+        return active, None, ok
     scale_q = tol * (1 + jnp.max(jnp.abs(q0)))
     scale_qd = tol * (1 + jnp.max(jnp.abs(qd0)))
     attached, ok = [], jnp.array(True)
-    for group in groups:
+    for group, tangent in zip(groups, plan.tangents, strict=True):
         gap = group.gap(q0, t0, args)
         velocity = group.velocity_residual(q0, qd0, t0, args)
+        if tangent >= 0:
+            velocity = velocity[:-1]  # (The normal rows: a start may slip.)
         attached.append(
             (jnp.abs(gap) <= scale_q) & jnp.all(jnp.abs(velocity) <= scale_qd)
         )
         ok = ok & (gap >= -scale_q)
     active = jnp.stack(attached)
-    held = system.with_active(plan.row_mask(active))
+    slip = None
+    if plan.friction:
+        slip = jnp.zeros((len(groups),), q0.dtype)
+        for which in plan._friction_groups():
+            decided = decide_slip(plan, system, active, slip, which, t0, q0, qd0, args)
+            slip = jnp.where(active[which], slip.at[which].set(decided), slip)
+    held = system.with_active(plan.row_mask(active, slip), plan.slip_rows(slip))
     off = off_constraints(held, q0, qd0, t0, args, tol)
-    return active, ok & jnp.invert(off)
+    return active, slip, ok & jnp.invert(off)
+
+
+def decide_slip(plan: Plan, system, active, slip, which, t, q, qd, args):
+    """The slip state of the attached group `which` (with friction) at `(t, q, qd)`:
+    the sign of its slip velocity `v_t` where it is not zero (beyond
+    `sqrt(eps) (1 + |qd|)`); else `0` (stick) where the multipliers of the mode that
+    sticks lie in the cone, `|lambda_t| <= mu_s N`, and otherwise the direction
+    opposite to `lambda_t` (the force that would be needed to stick)."""
+    group = plan.groups(system)[which]
+    coulomb = group.friction
+    first, _ = plan.rows[which]
+    tangent = plan.tangents[which]
+    v_t = _slip_velocity(group, q, qd, t, args)
+    moving = jnp.abs(v_t) > jnp.sqrt(jnp.finfo(q.dtype).eps) * (
+        1 + jnp.max(jnp.abs(qd))
+    )
+    stick = slip.at[which].set(0.0)
+    held = system.with_active(plan.row_mask(active, stick), plan.slip_rows(stick))
+    lam = solve_accelerations(held, q, qd, t, args)[1]
+    normal = group.sign * lam[first]
+    force = lam[tangent]
+    mu_s = jnp.asarray(coulomb.coefficients(args)[0], q.dtype)
+    inside = jnp.abs(force) <= mu_s * normal
+    return jnp.where(
+        moving, jnp.sign(v_t), jnp.where(inside, 0.0, -jnp.sign(force))
+    ).astype(q.dtype)
 
 
 class _Contacts(eqx.Module):
@@ -464,22 +546,82 @@ def _watch_fn(contacts, active, system, t, y, args, **kwargs):
     return _watched(contacts, active, contacts.multipliers(system, t, y, args))
 
 
-def _event_values(contacts, active, system, offsets, t, y, args):
+def _event_values(contacts, active, system, offsets, friction, t, y, args):
     """Per group: the pushing multiplier of an attached one, the gap (less its
-    offset) of a free one: all start `>= 0`, and the first to fall through zero is
-    the next event."""
-    lam = contacts.multipliers(system, t, y, args)
-    return jnp.where(
+    offset) of a free one; with `friction` (a `_Friction`), then per group the
+    stick-slip value (less its offset) and the Painleve consistency of a slipping
+    one: all start `>= 0`, and the first to fall through zero is the next event."""
+    if friction is None:
+        lam = contacts.multipliers(system, t, y, args)
+    else:
+        lam, consistency = _coupled(system, t, y, args)
+    primary = jnp.where(
         active, contacts.pushing(lam, active), contacts.gaps(y[0], t, args) - offsets
     )
+    if friction is None:
+        return primary
+    stick_slip = friction.values(contacts, active, t, y, args, lam) - friction.offsets
+    per_group = jnp.ones(primary.shape, lam.dtype)
+    groups = np.asarray([i for i, r in enumerate(friction.tangents) if r >= 0])
+    per_group = per_group.at[groups].set(consistency)
+    paradox = jnp.where(active & (friction.slip != 0), per_group, jnp.inf)
+    return jnp.concatenate([primary, stick_slip, paradox])
 
 
-def _next_event(contacts, active, system, offsets, t, y, args, **kwargs):
+def _next_event(contacts, active, system, offsets, friction, t, y, args, **kwargs):
     # One condition, the smallest value: diffrax keeps only the first condition (in
     # order) of those that change sign in a step, which need not be the first in
     # time.
     del kwargs
-    return jnp.min(_event_values(contacts, active, system, offsets, t, y, args))
+    return jnp.min(
+        _event_values(contacts, active, system, offsets, friction, t, y, args)
+    )
+
+
+def _slip_velocity(group, q, qd, t, args):
+    """`v_t = A_t qdot + a_t` of a group's friction."""
+    return jnp.reshape(group.friction.tangent.velocity_residual(q, qd, t, args), ())
+
+
+def _coupled(system, t, y, args):
+    """`(lambda, consistency)` of a mode with friction (`friction_dynamics`)."""
+    q, qd = y
+    _, lam, _, consistency = friction_dynamics(
+        system, q, qd, jnp.asarray(t, q.dtype), args, fill=jnp.nan
+    )
+    return lam, consistency
+
+
+class _Friction(eqx.Module):
+    """The friction data of a phase: per group the tangential row (`-1`: none), the
+    static coefficient, the slip state (`0` stick, `+-1` the slip direction) and the
+    offsets of the stick-slip event values."""
+
+    tangents: tuple[int, ...] = eqx.field(static=True)
+    mu_s: Float[Array, " g"]
+    slip: Float[Array, " g"] | None = None
+    offsets: Float[Array, " g"] | None = None
+
+    def values(self, contacts, active, t, y, args, lam):
+        """Per group with friction, attached: `mu_s N - |lambda_t|` while it sticks
+        (the distance to the cone's edge), `s v_t` while it slips (the slip speed);
+        `inf` for the others."""
+        q, qd = y
+        firsts = np.asarray(contacts.firsts)
+        rows = np.maximum(np.asarray(self.tangents), 0)
+        normal = jnp.asarray(contacts.signs, lam.dtype) * lam[firsts]
+        force = jnp.abs(lam[rows])
+        zero = jnp.zeros((), q.dtype)
+        v_t = jnp.stack(
+            [
+                zero if g.friction is None else _slip_velocity(g, q, qd, t, args)
+                for g in contacts.groups
+            ]
+        )
+        stick = jnp.where(jnp.isinf(self.mu_s), jnp.inf, self.mu_s * normal - force)
+        value = jnp.where(self.slip == 0, stick, self.slip * v_t)
+        has = jnp.asarray(np.asarray(self.tangents) >= 0)
+        return jnp.where(active & has, value, jnp.inf)
 
 
 def _scalar_gap(gap, q, t, args):
@@ -510,12 +652,14 @@ def signs_agree(plan: Plan, system, q0, qd0, t0, args):
     return agree
 
 
-def run_contacts(plan, options, solver, system, t0, t1, q0, qd0, args, ts, active0):
+def run_contacts(
+    plan, options, solver, system, t0, t1, q0, qd0, args, ts, active0, slip0=None
+):
     """The phases of a run with `Unilateral` groups (see the module docstring):
     `lax.scan` over `plan.num_phases` phases (reverse-mode autodiff goes through it,
     unlike a `while_loop`), each skipped once the run is over."""
     run = _ContactRun(plan, options, solver, system, args, ts, t1)
-    carry = run.initial(t0, q0, qd0, active0)
+    carry = run.initial(t0, q0, qd0, active0, slip0)
     if not plan.impacts:
         # A release run: its modes are known at trace time, attached then free, so
         # each phase runs its own system (the free one without the group's rows).
@@ -570,10 +714,29 @@ class _ContactRun:
             # Invalid values run as inelastic impacts (the status says why).
             self.restitution = jnp.where(self.valid, e, 0.0)
             self.rest_speed = jnp.where(self.valid, v, 0.0)
+        self.friction = None
+        self.friction_valid = jnp.array(True)
+        if plan.friction:
+            pairs = [
+                (jnp.asarray(0.0), jnp.asarray(0.0))
+                if g.friction is None
+                else g.friction.coefficients(args)
+                for g in groups
+            ]
+            mu_s = jnp.stack([jnp.asarray(p[0], dtype) for p in pairs])
+            mu_k = jnp.stack([jnp.asarray(p[1], dtype) for p in pairs])
+            # (NaN fails each test.)
+            self.friction_valid = jnp.all((mu_k >= 0) & (mu_k <= mu_s))
+            self.friction = _Friction(
+                plan.tangents, jnp.where(self.friction_valid, mu_s, 0.0)
+            )
 
-    def held(self, active):
-        """The system of the contact mode `active`."""
-        return self.system.with_active(self.plan.row_mask(active))
+    def held(self, active, slip=None):
+        """The system of the contact mode `active` (and `slip`, with friction)."""
+        plan = self.plan
+        return self.system.with_active(
+            plan.row_mask(active, slip), plan.slip_rows(slip)
+        )
 
     def mode(self, c, static):
         """`(active, held, contacts)` of a phase: for a mode known at run time only
@@ -581,7 +744,7 @@ class _ContactRun:
         known at trace time (`True`: every group attached, `False`: none), the full
         system, or the system without the groups' rows (nothing to solve for them)."""
         if static is None:
-            return c["active"], self.held(c["active"]), self.contacts
+            return c["active"], self.held(c["active"], c.get("slip")), self.contacts
         active = jnp.full((self.num_groups,), static)
         held = self.system
         if not static:
@@ -593,7 +756,7 @@ class _ContactRun:
         )
         return active, held, contacts
 
-    def initial(self, t0, q0, qd0, active0) -> dict:
+    def initial(self, t0, q0, qd0, active0, slip0=None) -> dict:
         n, size, num_ts = q0.shape[0], self.plan.num_records, self.ts.shape[0]
         inf = jnp.asarray(jnp.inf, self.dtype)
         stats = ("num_steps", "num_accepted_steps", "num_rejected_steps")
@@ -606,7 +769,8 @@ class _ContactRun:
             # A start with NaN or inf (refused by `_simulate` as `invalid_input`)
             # runs no phase: its steps would be rejected until `max_steps` (under
             # `jax.vmap` the whole batch waiting for it).
-            "done": jnp.invert(all_finite((q0, qd0, self.args))),
+            "done": jnp.invert(all_finite((q0, qd0, self.args)))
+            | jnp.invert(self.friction_valid),
             "result": RESULTS.successful,
             "at_start": jnp.array(False),
             "q_saved": jnp.full((num_ts, n), inf),
@@ -621,7 +785,15 @@ class _ContactRun:
             "impulse": jnp.zeros((size,), self.dtype),
             "q_event": jnp.full((size, n), inf),
             "qd_event": jnp.full((size, n), inf),
-        }
+        } | (
+            {}
+            if slip0 is None
+            else {
+                "slip": slip0,
+                "slip_saved": jnp.zeros((num_ts, self.num_groups), self.dtype),
+                "slip_event": jnp.zeros((size,), self.dtype),
+            }
+        )
 
     def phase(self, c, static=None) -> dict:
         """One phase, in the mode `c["active"]` (or the mode `static` known at trace
@@ -629,19 +801,30 @@ class _ContactRun:
         active, held, contacts = self.mode(c, static)
         c = dict(c, active=active)
         t_start = jnp.minimum(c["t"], self.t1 - self.tiny)
-        lam_start = contacts.multipliers(held, t_start, (c["q"], c["qd"]), self.args)
+        y_start = (c["q"], c["qd"])
+        paradox = jnp.array(False)
+        if self.friction is None:
+            lam_start = contacts.multipliers(held, t_start, y_start, self.args)
+        else:
+            lam_start, consistency = _coupled(held, t_start, y_start, self.args)
+            # A slipping contact whose coupled system has no solution (or several):
+            # the Painleve paradox, refused without integrating.
+            paradox = jnp.any(consistency <= 0)
         start = _watched(contacts, active, lam_start)
         # A multiplier that already pulls is released at once, without integrating.
-        pulls = jnp.any(active) & (start < 0)
+        pulls = (jnp.any(active) & (start < 0)) | paradox
 
         def released_at_start(_):
-            saved = (c["q_saved"], c["qd_saved"], c["active_saved"])
+            saved = self._saved(c)
             pushing = contacts.pushing(lam_start, active)
             which = jnp.asarray(jnp.argmin(pushing), int)
-            end = (t_start, c["q"], c["qd"], jnp.array(True), which)
+            # (A paradox at the start is no event: the run stops there.)
+            end = (t_start, c["q"], c["qd"], jnp.invert(paradox), which)
             return end, RESULTS.successful, saved, c["stats"]
 
-        integrate = functools.partial(self.integrate, c, held, contacts, t_start, start)
+        integrate = functools.partial(
+            self.integrate, c, held, contacts, t_start, start, lam_start
+        )
         if static is False:
             # (Nothing attached: nothing to release.)
             end, result, saved, stats = integrate(None)
@@ -657,12 +840,21 @@ class _ContactRun:
                 (run[0], run[2], run[3]),
             )
         new = self.record(c, end, result, pulls)
-        new.update(
-            q_saved=saved[0], qd_saved=saved[1], active_saved=saved[2], stats=stats
-        )
+        new.update(saved, stats=stats)
+        if self.friction is not None:
+            new.update(
+                done=new["done"] | paradox,
+                result=RESULTS.where(paradox, RESULTS.painleve_paradox, new["result"]),
+            )
         return new
 
-    def integrate(self, c, held, contacts, t_start, start, _, stop=None):
+    def _saved(self, c) -> dict:
+        keys = ("q_saved", "qd_saved", "active_saved")
+        if self.friction is not None:
+            keys = keys + ("slip_saved",)
+        return {k: c[k] for k in keys}
+
+    def integrate(self, c, held, contacts, t_start, start, lam_start, _, stop=None):
         """One diffrax solve from the phase's start to its event (or `stop`, by
         default `t1`)."""
         active, args, ts = c["active"], self.args, self.ts
@@ -680,11 +872,31 @@ class _ContactRun:
         offsets = jnp.where(
             active, 0.0, jnp.minimum(contacts.gaps(q, t_start, args), 0) - delta
         )
+        friction = self.friction
+        if friction is not None:
+            # A stick-slip value starts `>= 0` (the mode was decided so); the event
+            # is where it falls `margin` below its start (or below zero).
+            slip = c["slip"]
+            friction = _Friction(friction.tangents, friction.mu_s, slip)
+            values = friction.values(
+                contacts, active, t_start, (q, qd), args, lam_start
+            )
+            scale = jnp.where(
+                slip == 0,
+                jnp.max(jnp.abs(lam_start)),
+                1 + jnp.max(jnp.abs(qd)),
+            )
+            margin = 1e3 * self.eps * (1 + scale)
+            finite = jnp.isfinite(values)
+            offsets_f = jnp.where(finite, jnp.minimum(values, 0), 0.0) - margin
+            friction = _Friction(friction.tangents, friction.mu_s, slip, offsets_f)
         # (The offsets and the mode are leaves of the event, not closed over: see
         # `_adjoint.py`.)
         event = diffrax.Event(
             (
-                jax.tree_util.Partial(_next_event, contacts, active, held, offsets),
+                jax.tree_util.Partial(
+                    _next_event, contacts, active, held, offsets, friction
+                ),
                 diverged_condition(held, q, t_start, args),
             ),
             root_finder=self.root_finder,
@@ -709,21 +921,27 @@ class _ContactRun:
             RESULTS.where(missed, RESULTS.release_missed, RESULTS.promote(one.result)),
         )
         y_end = (one.q_end, one.qd_end)
-        values = _event_values(contacts, active, held, offsets, one.t_end, y_end, args)
+        values = _event_values(
+            contacts, active, held, offsets, friction, one.t_end, y_end, args
+        )
         which = jnp.asarray(jnp.argmin(values), int)
         happened = stopped & jnp.invert(diverged)
         in_phase = (ts >= c["t"]) & (ts <= one.t_end)
-        saved = (
-            jnp.where(in_phase[:, None], one.saved[0], c["q_saved"]),
-            jnp.where(in_phase[:, None], one.saved[1], c["qd_saved"]),
-            jnp.where(in_phase[:, None], active, c["active_saved"]),
+        saved = dict(
+            q_saved=jnp.where(in_phase[:, None], one.saved[0], c["q_saved"]),
+            qd_saved=jnp.where(in_phase[:, None], one.saved[1], c["qd_saved"]),
+            active_saved=jnp.where(in_phase[:, None], active, c["active_saved"]),
         )
+        if friction is not None:
+            saved["slip_saved"] = jnp.where(
+                in_phase[:, None], c["slip"], c["slip_saved"]
+            )
         stats = {
             k: v + jnp.asarray(one.stats[k], v.dtype) for k, v in c["stats"].items()
         }
         return (one.t_end, *y_end, happened, which), result, saved, stats
 
-    def impact(self, active, which, t_start, t, q, qd, is_contact):
+    def impact(self, active, slip, which, t_start, t, q, qd, is_contact):
         """`(t_c, q+, qd+, attached, speed, impulse)` after a contact of group
         `which`, located at `t`: back to where its gap closes (`t_c`,
         `back_to_contact`), an impact there with the group's restitution (inelastic
@@ -732,12 +950,15 @@ class _ContactRun:
         group_gap = jax.tree_util.Partial(_group_gap, self.contacts, which)
 
         def hit(_):
-            qdd, _, _ = solve_accelerations(self.held(active), q, qd, t, args)
+            qdd, _, _ = solve_accelerations(self.held(active, slip), q, qd, t, args)
             q_c, qd_c, t_c, speed = back_to_contact(
                 group_gap, q, qd, qdd, t, t_start, args
             )
             e = jnp.where(speed < self.rest_speed[which], 0.0, self.restitution[which])
-            held = self.held(active.at[which].set(True))
+            # (The impulse is frictionless: the impacting group's tangential row,
+            # marked slipping, does not hold through the impact.)
+            during = None if slip is None else slip.at[which].set(1.0)
+            held = self.held(active.at[which].set(True), during)
             scale = 1 + e * self.membership[which]
             q2, qd2, lam, singular = impact(held, scale, q_c, qd_c, t_c, args)
             q2 = jnp.where(singular, jnp.nan, q2)
@@ -751,10 +972,13 @@ class _ContactRun:
 
     def record(self, c, end, result, pulls) -> dict:
         """The state after the phase's event, and the event in the record."""
-        t_end, q_end, qd_end, happened, which = end
-        active = c["active"]
-        is_release = happened & active[which]
-        is_contact = happened & jnp.invert(active[which])
+        t_end, q_end, qd_end, happened, flat = end
+        # (An event value per group and kind: the release or contact, then with
+        # friction the stick-slip transition and the Painleve consistency.)
+        which, kind = flat % self.num_groups, flat // self.num_groups
+        active, slip = c["active"], c.get("slip")
+        is_release = happened & (kind == 0) & active[which]
+        is_contact = happened & (kind == 0) & jnp.invert(active[which])
         active2 = jnp.where(is_release, active.at[which].set(False), active)
         t2, q2, qd2 = t_end, q_end, qd_end
         attach = not_approaching = jnp.array(False)
@@ -762,7 +986,7 @@ class _ContactRun:
         if self.plan.impacts:
             t_start = jnp.minimum(c["t"], self.t1 - self.tiny)
             t2, q2, qd2, attach, speed, impulse = self.impact(
-                active, which, t_start, t_end, q_end, qd_end, is_contact
+                active, slip, which, t_start, t_end, q_end, qd_end, is_contact
             )
             attach = is_contact & attach
             active2 = jnp.where(attach, active.at[which].set(True), active2)
@@ -771,6 +995,17 @@ class _ContactRun:
             # the gap does not cross) is refused, never taken as an impact (nor as
             # a rest).
             not_approaching = is_contact & jnp.invert(speed > 0)
+        slip2 = slip
+        if self.friction is not None:
+            is_transition = happened & (kind == 1)
+            slip2, qd2 = self.slip_after(
+                active2, slip, which, t2, q2, qd2, is_release | is_contact,
+                is_transition | attach,
+            )  # fmt: skip
+            attach = attach | is_transition
+            result = RESULTS.where(
+                happened & (kind == 2), RESULTS.painleve_paradox, result
+            )
         size = self.plan.num_records
         over_budget = happened & (c["count"] >= size)
         record = happened & jnp.invert(over_budget)
@@ -795,8 +1030,15 @@ class _ContactRun:
                 RESULTS.recontact,
                 result,
             )
+        extra = {}
+        if self.friction is not None:
+            extra = dict(
+                slip=jnp.where(record, slip2, slip),
+                slip_event=put(c["slip_event"], slip2[which]),
+            )
         return dict(
             c,
+            **extra,
             t=jnp.where(record, t2, t_end),
             q=jnp.where(record, q2, q_end),
             qd=jnp.where(record, qd2, qd_end),
@@ -814,6 +1056,22 @@ class _ContactRun:
             q_event=put(c["q_event"], q2),
             qd_event=put(c["qd_event"], qd2),
         )
+
+    def slip_after(self, active, slip, which, t, q, qd, freed, decide):
+        """`(slip, qd)` after an event of group `which`: a released or impacting
+        group does not slip (`freed`); where `decide` (a stick-slip transition, an
+        impact that attaches) the group's new state by `decide_slip`, its velocities
+        put onto the rows that hold where it sticks again (`v_t = 0` exactly)."""
+        plan, system, args = self.plan, self.system, self.args
+        slip = jnp.where(freed, slip.at[which].set(0.0), slip)
+        new = slip
+        for i in plan._friction_groups():
+            i = int(i)
+            decided = decide_slip(plan, system, active, slip, i, t, q, qd, args)
+            new = jnp.where(decide & (which == i), new.at[i].set(decided), new)
+        sticks = decide & (new[which] == 0) & (plan.tangents_array()[which] >= 0)
+        _, qd_held, _, _ = project(self.held(active, new), q, qd, t, args, 0)
+        return new, jnp.where(sticks, qd_held, qd)
 
     def finish(self, c, t0) -> Run:
         result = c["result"]
@@ -839,6 +1097,10 @@ class _ContactRun:
                 q=c["q_event"],
                 qd=c["qd_event"],
                 mode=jnp.sum(jnp.where(c["active"], bits, 0)),
+                slip=c.get("slip_event"),
+            )
+            result = RESULTS.where(
+                self.friction_valid, result, RESULTS.invalid_friction
             )
         else:
             release = _release_record(c, self.t1)
@@ -854,6 +1116,8 @@ class _ContactRun:
             stats=c["stats"],
             events=events,
             release=release,
+            slip=c.get("slip_saved"),
+            slip_end=c.get("slip"),
         )
 
 

@@ -130,6 +130,22 @@ class RESULTS(diffrax.RESULTS, metaclass=NamedEnumerationMeta):  # pyright: igno
         "are inf. To run on through the impact, give the `Unilateral` a "
         "`restitution` and pass `simulate(..., max_events=N)`."
     )
+    painleve_paradox = (
+        "A slipping `cjax.Unilateral` with `cjax.Coulomb` friction has no consistent "
+        "motion (the Painleve paradox): with the kinetic friction force coupled to "
+        "the normal force, the coefficient of the normal multiplier in the contact's "
+        "equation is not positive, so the equations have no solution or several "
+        "(a slender rod sliding on a floor rougher than its critical coefficient). "
+        "The run stops where it arises: at the start of the slip (`traj.events`: "
+        "the last event before it, none at `t0`) or at the event where the "
+        "coefficient falls through zero. Lower `mu_k`, or model the contact as "
+        "compliant."
+    )
+    invalid_friction = (
+        "A `cjax.Coulomb` coefficient from `args` is out of range: the kinetic "
+        "coefficient must satisfy 0 <= mu_k <= mu_s (NaN fails). The run did not "
+        "start."
+    )
     invalid_restitution = (
         "A `cjax.Unilateral`'s `restitution(args)` is not in [0, 1] (or is NaN), or "
         "its `rest_speed(args)` is negative or NaN. Newton's coefficient of "

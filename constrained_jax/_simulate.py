@@ -333,6 +333,13 @@ def _check_max_events(system, max_events):
     """Refuse, at trace time, a `max_events` that does not fit the system."""
     groups = [c for c in system.constraints if c.unilateral]
     if max_events is None:
+        if any(c.friction is not None for c in groups):
+            raise ValueError(
+                "A `cjax.Unilateral` with `cjax.Coulomb` friction sticks and slips: "
+                "each transition is an event. Give it a `gap` and a `restitution` "
+                "(`0.0`: contacts that close stay closed) and pass the budget of "
+                "events, e.g. `simulate(..., max_events=16)`."
+            )
         if len(groups) > 1:
             raise ValueError(
                 "Without `max_events`, `simulate` handles one `cjax.Unilateral` "
@@ -495,12 +502,12 @@ def _simulate(system, plan, options, t0, t1, q0, qd0, args):
     saveat, consistency_tol = options.saveat, options.consistency_tol
     start_ok = all_finite((q0, qd0, args, t0, t1, options.dt0))
     if plan.contacts:
-        active0, consistent = initial_contacts(
+        active0, slip0, consistent = initial_contacts(
             plan, system, q0, qd0, t0, args, consistency_tol
         )
         signs_ok = signs_agree(plan, system, q0, qd0, t0, args)
     else:
-        active0, signs_ok = None, jnp.array(True)
+        active0, slip0, signs_ok = None, None, jnp.array(True)
         consistent = jnp.invert(
             off_constraints(system, q0, qd0, t0, args, consistency_tol)
         )
@@ -542,6 +549,7 @@ def _simulate(system, plan, options, t0, t1, q0, qd0, args):
             args,
             ts,
             active0,
+            slip0,
         )
     else:
         ends = (saveat.t0, saveat.t1) if saveat.ts is None else None
@@ -583,15 +591,29 @@ def _derived(system, plan, stabilization, saveat, run: Run, ts, args) -> dict:
     state reached."""
     masks = None
     if run.active is not None:
-        masks = jax.vmap(plan.row_mask)(run.active)
-    end_mask = None if run.active_end is None else plan.row_mask(run.active_end)
+        masks = jax.vmap(plan.row_mask)(run.active, run.slip)
+        if run.slip is not None:
+            masks = (masks, jax.vmap(plan.slip_rows)(run.slip))
+    end_mask = None
+    if run.active_end is not None:
+        end_mask = plan.row_mask(run.active_end, run.slip_end)
+        if run.slip_end is not None:
+            end_mask = (end_mask, plan.slip_rows(run.slip_end))
 
     def held(mask):
-        return system if mask is None else system.with_active(mask)
+        # (A mode: the rows that hold, with friction also the slip per row.)
+        if mask is None:
+            return system
+        return (
+            system.with_active(*mask)
+            if isinstance(mask, tuple)
+            else (system.with_active(mask))
+        )
 
     # Saved states between steps are interpolated: the stabilization may correct them
     # too (with the rows that held there; states never reached stay inf).
-    q, qd = stabilization.project_saved(system, run.q, run.qd, ts, args, masks)
+    row_masks = masks[0] if isinstance(masks, tuple) else masks
+    q, qd = stabilization.project_saved(system, run.q, run.qd, ts, args, row_masks)
     out = {"q": q, "qd": qd}
     end = (run.q_end, run.qd_end, run.t_end)
     if saveat.multipliers:
@@ -619,7 +641,10 @@ def _derived(system, plan, stabilization, saveat, run: Run, ts, args) -> dict:
                 lambda a, b: jnp.concatenate([a, b[None]]), (q, qd, ts), end
             )
             if masks is not None:
-                points = (*points, jnp.concatenate([masks, end_mask[None]]))
+                both = jax.tree.map(
+                    lambda a, b: jnp.concatenate([a, b[None]]), masks, end_mask
+                )
+                points = (*points, both)
             lam, singular = each(one, *points)
             lam_saved, singular_saved = lam[:-1], singular[:-1]
             singular_end = singular[-1]

@@ -234,6 +234,7 @@ class LagrangianSystem(eqx.Module):
     forces: Callable | None = None
     saddle_point_solver: AbstractSaddlePointSolver = Automatic()
     active: Bool[Array, " k"] | None = None
+    slip: Float[Array, " k"] | None = None
 
     def __init__(
         self,
@@ -273,15 +274,37 @@ class LagrangianSystem(eqx.Module):
         self.forces = forces
         self.saddle_point_solver = saddle_point_solver
         self.active = None
+        self.slip = None
 
-    def with_active(self, active: Bool[Array, " k"] | None) -> "LagrangianSystem":
+    def with_active(
+        self, active: Bool[Array, " k"] | None, slip: Float[Array, " k"] | None = None
+    ) -> "LagrangianSystem":
         """The same system with only the constraint rows where `active` (shape
         `(k,)`, traced) holding: the others (a released contact) are solved as
         trivial rows with zero multipliers, and their residuals are not held to
-        zero. `None`: every row holds. One compiled program serves every mask."""
+        zero. `None`: every row holds. One compiled program serves every mask.
+
+        `slip` (shape `(k,)`, traced, or `None`): on the tangential row of a contact
+        with [`constrained_jax.Coulomb`][] friction that slips, the sign of its slip
+        velocity (the row is then inactive, and the kinetic friction force acts
+        along it); `0` elsewhere."""
         return eqx.tree_at(
-            lambda s: s.active, self, active, is_leaf=lambda x: x is None
+            lambda s: (s.active, s.slip),
+            self,
+            (active, slip),
+            is_leaf=lambda x: x is None,
         )
+
+    def friction_pairs(self, n: int, args, dtype) -> list:
+        """Per contact with friction: `(normal row, tangential row, sign, Coulomb)`,
+        rows of `A` (static)."""
+        out, start = [], 0
+        for c in self.constraints:
+            size = c.num_constraints(n, args, dtype)
+            if getattr(c, "friction", None) is not None:
+                out.append((start, start + size - 1, c.sign, c.friction))
+            start += size
+        return out
 
     # ------------------------------------------------------------------ structure
 
@@ -594,9 +617,65 @@ def solve_dynamics(
     """`(qddot, lambda, singular)` of `system` at `(q, qd, t)`: its saddle-point
     system solved by its solver, differentiated by the implicit rule; `qddot` is
     `fill` where `singular` (NaN inside a time integration: the step is then
-    rejected)."""
+    rejected). With slipping contacts, the coupled solve of `friction_dynamics`."""
+    return friction_dynamics(system, q, qd, t, args, bias_correction, fill)[:3]
+
+
+def friction_dynamics(
+    system: LagrangianSystem, q, qd, t, args, bias_correction=None, fill: float = 0.0
+):
+    """`(qddot, lambda, singular, consistency)`: `solve_dynamics` with the kinetic
+    friction of the contacts that slip (`system.slip`), and per contact with
+    friction the coefficient `D_jj` of its normal multiplier in the coupled system
+    (`1` for one that does not slip; `<= 0`: the Painleve paradox).
+
+    The friction force of a slipping contact `j` is `f_j = -mu_k s_j N_j` along its
+    tangential row `a_j` (`N_j = sign_j lambda_n_j`, `s_j` the slip direction), a
+    generalised force `a_j^T f_j` on the right-hand side. The solve is linear in the
+    right-hand side, so with `(x_0, lambda_0)` the solve without friction and
+    `(x_j, lambda_j)` the solve for the force `a_j^T` alone (no bias), the normal
+    multipliers satisfy `lambda_n = lambda_n0 + S f`, `S_ij = lambda_j[n_i]`, and
+    `f = C lambda_n`, `C = diag(-mu_k s_j sign_j)`: `(I - S C) lambda_n =
+    lambda_n0`, one small solve, exact (not a lagged force). Where `D = I - S C`
+    has a non-positive diagonal the coupled system has no solution or several
+    (a slender rod on a rough floor): the solve is `singular`."""
     kkt = system.saddle_point_system(q, qd, t, args, bias_correction)
-    return solve_saddle_point(system.saddle_point_solver, kkt, fill)
+    solver = system.saddle_point_solver
+    x, lam, singular = solve_saddle_point(solver, kkt, fill)
+    pairs = []
+    if system.slip is not None:
+        pairs = system.friction_pairs(q.shape[0], args, q.dtype)
+    if not pairs:
+        return x, lam, singular, jnp.ones((len(pairs),), q.dtype)
+    t = jnp.asarray(t, q.dtype)
+    normals = np.asarray([p[0] for p in pairs])
+    tangents = np.asarray([p[1] for p in pairs])
+    signs = jnp.asarray([p[2] for p in pairs], q.dtype)
+    mu_k = jnp.stack([jnp.asarray(p[3].coefficients(args)[1], q.dtype) for p in pairs])
+    coupling = -mu_k * system.slip[tangents] * signs
+    zeros = jnp.zeros_like(kkt.bias)
+    xs, lams = [], []
+    for _, _, _, coulomb in pairs:
+        row = jnp.reshape(coulomb.tangent.velocity_form(q, t, args)[0], (-1,))
+        unit = SaddlePointSystem(
+            kkt.mass, kkt.jac, row.astype(q.dtype), zeros, kkt.mismatch, kkt.active
+        )
+        x_j, lam_j, singular_j = solve_saddle_point(solver, unit, fill)
+        xs.append(x_j)
+        lams.append(lam_j)
+        singular = singular | singular_j
+    xs, lams = jnp.stack(xs), jnp.stack(lams)
+    response = lams[:, normals].T  # S: normal multipliers per unit tangential force
+    coefficients = jnp.eye(len(pairs), dtype=q.dtype) - response * coupling[None, :]
+    consistency = jnp.diagonal(coefficients)
+    lam_n = jnp.linalg.solve(coefficients, lam[normals])
+    force = coupling * lam_n
+    x = x + force @ xs
+    lam = (lam + force @ lams).at[tangents].add(force)
+    # (The solution is kept where `D` is not positive: inside a time integration a
+    # NaN would make every step fail before the phase's Painleve event is found.)
+    singular = singular | jnp.any(consistency <= 0)
+    return x, lam, singular, consistency
 
 
 def project(
