@@ -18,6 +18,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.optimize import minimize_scalar
 
+import constrained_jax as cjax
 from constrained_jax.scenes import (
     incline_block as incline,
     painleve_rod as rod,
@@ -492,3 +493,68 @@ def test_painleve_gradients():
 
     grad = float(jax.grad(n_of_theta)(jnp.asarray(0.6)))
     assert grad == pytest.approx(finite_difference_grad(n_of_theta, 0.6)[()], rel=1e-7)
+
+
+@pytest.mark.parametrize(
+    "mu_s, mu_k, theta0, v, t1, modes",
+    [
+        (0.7, 0.6, 0.9, 0.3, 0.38, [1.0, 0.0, -1.0]),  # `stick_slip_state`
+        (0.7, 0.5, 1.0, 0.5, 0.42, [1.0, -1.0]),  # reversal without a stick
+    ],
+)
+def test_painleve_stick_slip_reference(mu_s, mu_k, theta0, v, t1, modes):
+    """The hand-derived stick-slip reference (pivot equations while sticking)
+    against the autodiff-built one: the same switches at the same times, the same
+    state at the end."""
+    args = rod.default_args(mu_s=mu_s, mu_k=mu_k)
+    q0, qd0 = rod.state(theta0, v, args)
+    if theta0 == 0.9:
+        np.testing.assert_array_equal(q0, rod.stick_slip_state(args)[0])
+    switches, q, qd = rod.stick_slip_reference(q0, qd0, t1, args)
+    dense, switches_ad = _stick_slip(rod, args, np.asarray(q0), np.asarray(qd0), t1)
+    assert [m for _, m in switches] == modes
+    assert [m for _, m in switches_ad] == modes
+    np.testing.assert_allclose(
+        [t for t, _ in switches], [t for t, _ in switches_ad], rtol=1e-10
+    )
+    q_ad, qd_ad, n_ad, _, _ = dense(t1)
+    np.testing.assert_allclose(q, q_ad, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(qd, qd_ad, rtol=1e-9, atol=1e-10)
+    assert n_ad > 0 and q[2] > 0.2
+    # The contact is held throughout (pivot and sliding equations alike).
+    assert abs(float(rod.gap(q, t1, args))) < 1e-11
+
+
+@pytest.mark.parametrize(
+    "mod, args, q, a_n, a_t",
+    [
+        (incline, incline.default_args(), [0.3, 0.0], [0, 1], [1, 0]),
+        (disk, disk.default_args(R=0.2), [0.3, 0.2, 1.0], [0, 1, 0], [1, 0, 0.2]),
+        (
+            cylf,
+            cylf.default_args(a=0.3, R=1.0),
+            [1.3, 0.4, 1.7],
+            [1, 0, 0],
+            [0, 1.3, -0.3],
+        ),
+        (
+            rod,
+            rod.default_args(l=0.5),
+            [0.0, 0.5 * np.sin(0.7), 0.7],
+            [0, 1, -0.5 * np.cos(0.7)],
+            [1, 0, -0.5 * np.sin(0.7)],
+        ),
+    ],
+)
+def test_rows(mod, args, q, a_n, a_t):
+    """The builders' rows, through the library's constraint classes (the group
+    without its friction), are the ones the closed forms are derived for."""
+    q = jnp.asarray(q, float)
+    t = jnp.asarray(0.0)
+    normal = cjax.Holonomic(mod.gap)
+    tangent = cjax.Pfaffian(mod.tangent_row)
+    assert normal.num_constraints(q.size, args) == 1
+    assert tangent.num_constraints(q.size, args) == 1
+    np.testing.assert_allclose(normal.velocity_form(q, t, args)[0], [a_n], atol=1e-15)
+    np.testing.assert_allclose(tangent.velocity_form(q, t, args)[0], [a_t], atol=1e-15)
+    assert float(mod.gap(q, t, args)) == pytest.approx(0.0, abs=1e-15)

@@ -130,9 +130,10 @@ def state(theta, v, args, thetadot=0.0, x=0.0):
 
 
 def default_state(args):
-    """The reference case: `theta = 0.6`, at rest but for the lower end sliding
-    forwards at `v_t = 3` (with `default_args`: slides until `t = 0.25` at least,
-    `N > 0`, no stop, `theta` stays in `(0.3, 0.6]`)."""
+    """The reference case: `theta = 0.6`, `thetadot = 0`, the lower end sliding
+    forwards at `v_t = 3`. With `default_args` (`mu = 0.5`, below `4/3`: no paradox
+    at any angle) the rod falls while sliding; up to `t = 0.2` it keeps `N > 0`,
+    `v_t > 2.9`, `theta > 0.33` (it lies flat, `theta = 0`, near `t = 0.29`)."""
     return state(0.6, 3.0, args)
 
 
@@ -266,3 +267,111 @@ def sliding_reference(q0, qd0, t1, args, rtol=1e-13, atol=1e-13):
     q, qd = y[:3], y[3:6]
     n = float(normal(t1, y)) * float(args["m"]) / float(denominator(t1, y))
     return q, qd, n, float(y[6])
+
+
+def pivot_multipliers(y, args):
+    """`(thetaddot, N, lambda_t)` while sticking (the lower end a fixed pivot),
+    hand-derived, NumPy: about the pivot, `(4/3) m l^2 thetaddot = -m g l cos(theta)`;
+    the centre, `(x_p - l cos(theta), l sin(theta))`, accelerates at
+    `xddot = l (sin(theta) thetaddot + cos(theta) thetadot^2)`,
+    `yddot = l (cos(theta) thetaddot - sin(theta) thetadot^2)`, so
+    `lambda_t = m xddot`, `N = m (g + yddot)`."""
+    m, length, g = (float(args[k]) for k in ("m", "l", "g"))
+    theta, thd = y[2], y[5]
+    c, sn = np.cos(theta), np.sin(theta)
+    thdd = -3 * g * c / (4 * length)
+    xdd = length * (sn * thdd + c * thd**2)
+    ydd = length * (c * thdd - sn * thd**2)
+    return thdd, m * (g + ydd), m * xdd
+
+
+def _pivot_rhs(t, y, args):
+    thdd, n, lam = pivot_multipliers(y, args)
+    m = float(args["m"])
+    return np.array([y[3], y[4], y[5], lam / m, n / m - float(args["g"]), thdd, 0.0])
+
+
+def stick_slip_reference(q0, qd0, t1, args, max_switches=6, rtol=1e-13, atol=1e-13):
+    """The rod with Coulomb friction from `(q0, qd0)` (lower end on the floor) to
+    `t1`, hand-derived equations only (`sliding_rhs` while slipping,
+    `pivot_multipliers` while sticking), SciPy's DOP853 between switches found by
+    events: slip -> `v_t = 0`, then stick where `|lambda_t| <= mu_s N` for the pivot's
+    multipliers, else slip the other way; stick -> `|lambda_t| = mu_s N`, then slip
+    with `s = -sign(lambda_t)`. Returns `(switches, q, qd)`: `switches` the list of
+    `(t, slip state after it)` (`0.0` sticking, `+-1.0` slipping), starting with
+    `(0.0, initial state)`, and the state at `t1`. Raises at a lift-off (`N = 0`),
+    a paradox (`D = 0`) or more than `max_switches` switches."""
+    from scipy.integrate import solve_ivp
+
+    mu_s, mu_k = float(args["mu_s"]), float(args["mu_k"])
+    length = float(args["l"])
+
+    def vt(y):
+        return y[3] - length * np.sin(y[2]) * y[5]
+
+    def at_rest(y):
+        _, n, lam = pivot_multipliers(y, args)
+        return 0.0 if abs(lam) <= mu_s * n else float(-np.sign(lam))
+
+    y = np.concatenate([np.asarray(q0, float), np.asarray(qd0, float), [0.0]])
+    v = vt(y)
+    mode = at_rest(y) if v == 0 else float(np.sign(v))
+    t, switches = 0.0, [(0.0, mode)]
+    for _ in range(max_switches + 1):
+        s = mode
+        if s == 0.0:
+
+            def rhs(t, y):
+                return _pivot_rhs(t, y, args)
+
+            def normal(t, y):
+                return pivot_multipliers(y, args)[1]
+
+            def switch(t, y):
+                _, n, lam = pivot_multipliers(y, args)
+                return abs(lam) - mu_s * n
+
+            switch.direction = 1
+            events = (normal, switch)
+        else:
+
+            def rhs(t, y, s=s):
+                return sliding_rhs(t, y, args, s)
+
+            def normal(t, y):
+                return float(args["g"]) - length * np.sin(y[2]) * y[5] ** 2
+
+            def switch(t, y):
+                return vt(y)
+
+            def paradox(t, y, s=s):
+                c = np.cos(y[2])
+                return 1 + 3 * c**2 - 3 * s * mu_k * np.sin(y[2]) * c
+
+            switch.direction = -s
+            paradox.terminal = True
+            events = (normal, switch, paradox)
+        normal.terminal, switch.terminal, normal.direction = True, True, -1
+        sol = solve_ivp(
+            rhs, (t, t1), y, method="DOP853", rtol=rtol, atol=atol, events=events
+        )
+        t, y = float(sol.t[-1]), sol.y[:, -1]
+        if sol.status == 0:
+            return switches, y[:3], y[3:6]
+        if sol.t_events[0].size:
+            raise ValueError(f"lift-off at t = {t}")
+        if len(events) == 3 and sol.t_events[2].size:
+            raise ValueError(f"Painlevé paradox at t = {t}")
+        mode = (
+            float(-np.sign(pivot_multipliers(y, args)[2])) if s == 0.0 else at_rest(y)
+        )
+        switches.append((t, mode))
+    raise ValueError("more switches than max_switches")
+
+
+def stick_slip_state(args):
+    """A case with a stop and a reversal: `theta = 0.9`, `thetadot = 0`, the lower
+    end sliding forwards at `v_t = 0.3`. With `default_args(mu_s=0.7, mu_k=0.6)` it
+    slides forwards, sticks (`t ~ 0.254`), slips backwards (`t ~ 0.322`), and keeps
+    `N > 0`, `theta > 0.25` up to `t = 0.38`."""
+    return state(0.9, 0.3, args)

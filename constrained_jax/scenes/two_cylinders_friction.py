@@ -73,28 +73,19 @@ from jaxtyping import Array, Float
 from .._constraints import Holonomic, Pfaffian, Unilateral
 from .._system import LagrangianSystem
 from . import two_cylinders
+
+# Re-exported: the rolling phase's closed forms are `two_cylinders`'.
 from .two_cylinders import (
-    alpha,
-    angular_velocity_squared,
-    detachment_angle,
-    lagrangian,
-    no_slip_multiplier,
-    normal_force,
-    state,
-    time_to_angle,
+    alpha as alpha,
+    angular_velocity_squared as angular_velocity_squared,
+    detachment_angle as detachment_angle,
+    detachment_time as detachment_time,
+    lagrangian as lagrangian,
+    no_slip_multiplier as no_slip_multiplier,
+    normal_force as normal_force,
+    state as state,
+    time_to_angle as time_to_angle,
 )
-
-
-__all__ = [
-    "alpha",
-    "angular_velocity_squared",
-    "detachment_angle",
-    "lagrangian",
-    "no_slip_multiplier",
-    "normal_force",
-    "state",
-    "time_to_angle",
-]
 
 
 def gap(q, t, args) -> Float[Array, ""]:
