@@ -463,19 +463,21 @@ def initial_contacts(plan: Plan, system, q0, qd0, t0, args, tol):
     return active, slip, ok & jnp.invert(off)
 
 
-def decide_slip(plan: Plan, system, active, slip, which, t, q, qd, args):
+def decide_slip(plan: Plan, system, active, slip, which, t, q, qd, args, moving=True):
     """The slip state of the attached group `which` (with friction) at `(t, q, qd)`:
-    the sign of its slip velocity `v_t` where it is not zero (beyond
+    where `moving`, the sign of its slip velocity `v_t` where it is not zero (beyond
     `sqrt(eps) (1 + |qd|)`); else `0` (stick) where the multipliers of the mode that
     sticks lie in the cone, `|lambda_t| <= mu_s N`, and otherwise the direction
-    opposite to `lambda_t` (the force that would be needed to stick)."""
+    opposite to `lambda_t` (the force that would be needed to stick). At a
+    stick-slip event `moving` is false: `v_t` is zero there to the event's
+    tolerance, whatever its size in round-off."""
     group = plan.groups(system)[which]
     coulomb = group.friction
     first, _ = plan.rows[which]
     tangent = plan.tangents[which]
     v_t = _slip_velocity(group, q, qd, t, args)
-    moving = jnp.abs(v_t) > jnp.sqrt(jnp.finfo(q.dtype).eps) * (
-        1 + jnp.max(jnp.abs(qd))
+    moving = moving & (
+        jnp.abs(v_t) > jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.max(jnp.abs(qd)))
     )
     stick = slip.at[which].set(0.0)
     held = system.with_active(plan.row_mask(active, stick), plan.slip_rows(stick))
@@ -886,7 +888,7 @@ class _ContactRun:
                 jnp.max(jnp.abs(lam_start)),
                 1 + jnp.max(jnp.abs(qd)),
             )
-            margin = 1e3 * self.eps * (1 + scale)
+            margin = 64 * self.eps * (1 + scale)
             finite = jnp.isfinite(values)
             offsets_f = jnp.where(finite, jnp.minimum(values, 0), 0.0) - margin
             friction = _Friction(friction.tangents, friction.mu_s, slip, offsets_f)
@@ -1000,7 +1002,7 @@ class _ContactRun:
             is_transition = happened & (kind == 1)
             slip2, qd2 = self.slip_after(
                 active2, slip, which, t2, q2, qd2, is_release | is_contact,
-                is_transition | attach,
+                is_transition, attach,
             )  # fmt: skip
             attach = attach | is_transition
             result = RESULTS.where(
@@ -1057,17 +1059,21 @@ class _ContactRun:
             qd_event=put(c["qd_event"], qd2),
         )
 
-    def slip_after(self, active, slip, which, t, q, qd, freed, decide):
+    def slip_after(self, active, slip, which, t, q, qd, freed, transition, landed):
         """`(slip, qd)` after an event of group `which`: a released or impacting
-        group does not slip (`freed`); where `decide` (a stick-slip transition, an
-        impact that attaches) the group's new state by `decide_slip`, its velocities
-        put onto the rows that hold where it sticks again (`v_t = 0` exactly)."""
+        group does not slip (`freed`); after a stick-slip `transition` or an impact
+        that attaches it (`landed`), the group's new state by `decide_slip`, its
+        velocities put onto the rows that hold where it sticks again (`v_t = 0`
+        exactly)."""
         plan, system, args = self.plan, self.system, self.args
         slip = jnp.where(freed, slip.at[which].set(0.0), slip)
         new = slip
+        decide = transition | landed
         for i in plan._friction_groups():
             i = int(i)
-            decided = decide_slip(plan, system, active, slip, i, t, q, qd, args)
+            decided = decide_slip(
+                plan, system, active, slip, i, t, q, qd, args, moving=landed
+            )
             new = jnp.where(decide & (which == i), new.at[i].set(decided), new)
         sticks = decide & (new[which] == 0) & (plan.tangents_array()[which] >= 0)
         _, qd_held, _, _ = project(self.held(active, new), q, qd, t, args, 0)

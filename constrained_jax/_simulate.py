@@ -698,8 +698,10 @@ def _status(run: Run, derived: dict, saveat, floored: bool) -> RESULTS:
         singular = singular | jnp.any(derived["singular_saved"] & reached)
     # A run stopped by the divergence check (the state left the manifold: a step too
     # large) keeps `diverged`, even where the runaway state's KKT matrix is singular.
+    # (Nor does a Painleve paradox: its coupled system is singular by definition.)
+    keep = (result == RESULTS.diverged) | (result == RESULTS.painleve_paradox)
     result = RESULTS.where(
-        singular & (result != RESULTS.successful) & (result != RESULTS.diverged),
+        singular & (result != RESULTS.successful) & jnp.invert(keep),
         RESULTS.singular_dynamics,
         result,
     )

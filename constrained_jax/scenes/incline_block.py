@@ -47,8 +47,9 @@ by `mu_k N |dx|` along each slipping stretch.
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._constraints import Holonomic, Pfaffian, Unilateral
+from .._constraints import Unilateral
 from .._system import LagrangianSystem
+from ._rough import rough_contact
 
 
 def lagrangian(q, qd, t, args) -> Float[Array, ""]:
@@ -72,18 +73,7 @@ def tangent_row(q, t, args) -> Float[Array, "1 2"]:
 def contact() -> Unilateral:
     """The contact: normal row `y`, sign `+1`, gap `y`, Coulomb friction on the
     tangent row `xdot` with `args["mu_s"]`, `args["mu_k"]`."""
-    from .. import Coulomb  # the friction law (`cjax.Coulomb`)
-
-    return Unilateral(
-        Holonomic(gap),
-        sign=1.0,
-        gap=gap,
-        friction=Coulomb(
-            Pfaffian(tangent_row),
-            mu_s=lambda args: args["mu_s"],
-            mu_k=lambda args: args["mu_k"],
-        ),
-    )
+    return rough_contact(gap, tangent_row)
 
 
 def system() -> LagrangianSystem:

@@ -58,8 +58,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._constraints import Holonomic, Pfaffian, Unilateral
+from .._constraints import Unilateral
 from .._system import LagrangianSystem
+from ._rough import rough_contact
 
 
 def lagrangian(q, qd, t, args) -> Float[Array, ""]:
@@ -84,18 +85,7 @@ def contact() -> Unilateral:
     """The floor: normal row `y - l sin(theta)`, sign `+1`, the same gap, Coulomb
     friction on the lower end's horizontal velocity with `args["mu_s"]`,
     `args["mu_k"]`."""
-    from .. import Coulomb  # the friction law (`cjax.Coulomb`)
-
-    return Unilateral(
-        Holonomic(gap),
-        sign=1.0,
-        gap=gap,
-        friction=Coulomb(
-            Pfaffian(tangent_row),
-            mu_s=lambda args: args["mu_s"],
-            mu_k=lambda args: args["mu_k"],
-        ),
-    )
+    return rough_contact(gap, tangent_row)
 
 
 def system() -> LagrangianSystem:

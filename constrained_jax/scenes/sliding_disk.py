@@ -49,8 +49,9 @@ equals `mu_k N |v_t0| t* / 2` (the work `int mu_k N |v_t| dt` at linearly fallin
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._constraints import Holonomic, Pfaffian, Unilateral
+from .._constraints import Unilateral
 from .._system import LagrangianSystem
+from ._rough import rough_contact
 
 
 def lagrangian(q, qd, t, args) -> Float[Array, ""]:
@@ -75,18 +76,7 @@ def tangent_row(q, t, args) -> Float[Array, "1 3"]:
 def contact() -> Unilateral:
     """The floor: normal row `y - R`, sign `+1`, gap `y - R`, Coulomb friction on
     the tangent row `xdot + R phidot` with `args["mu_s"]`, `args["mu_k"]`."""
-    from .. import Coulomb  # the friction law (`cjax.Coulomb`)
-
-    return Unilateral(
-        Holonomic(gap),
-        sign=1.0,
-        gap=gap,
-        friction=Coulomb(
-            Pfaffian(tangent_row),
-            mu_s=lambda args: args["mu_s"],
-            mu_k=lambda args: args["mu_k"],
-        ),
-    )
+    return rough_contact(gap, tangent_row)
 
 
 def system() -> LagrangianSystem:

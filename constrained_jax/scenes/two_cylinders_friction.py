@@ -70,9 +70,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._constraints import Holonomic, Pfaffian, Unilateral
+from .._constraints import Unilateral
 from .._system import LagrangianSystem
 from . import two_cylinders
+from ._rough import rough_contact
 
 # Re-exported: the rolling phase's closed forms are `two_cylinders`'.
 from .two_cylinders import (
@@ -101,18 +102,7 @@ def tangent_row(q, t, args) -> Float[Array, "1 3"]:
 def contact() -> Unilateral:
     """The contact with Coulomb friction: normal row `r - (R + a)`, sign `+1`, the
     same gap, friction on `(0, R + a, -a)` with `args["mu_s"]`, `args["mu_k"]`."""
-    from .. import Coulomb  # the friction law (`cjax.Coulomb`)
-
-    return Unilateral(
-        Holonomic(gap),
-        sign=1.0,
-        gap=gap,
-        friction=Coulomb(
-            Pfaffian(tangent_row),
-            mu_s=lambda args: args["mu_s"],
-            mu_k=lambda args: args["mu_k"],
-        ),
-    )
+    return rough_contact(gap, tangent_row)
 
 
 def system() -> LagrangianSystem:

@@ -1,0 +1,394 @@
+"""Coulomb friction on a contact (`cjax.Coulomb`): stick, slip, the transitions
+between them and their gradients, against the closed forms and the independent
+(hand-derived, SciPy-integrated) references of the friction scenes."""
+
+import json
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import constrained_jax as cjax
+from constrained_jax.scenes import (
+    incline_block as incline,
+    painleve_rod as rod,
+    sliding_disk as disk,
+    two_cylinders_friction as cylinders,
+)
+
+from .helpers import run_python
+
+
+TOL = 1e-12  # the integration tolerance (rtol = atol)
+MAX_EVENTS = 6
+
+
+def _run(scene, q0, qd0, args, t1, ts, **kwargs):
+    """One program per scene (and dtype): three save times, multipliers, six
+    events; everything else traced."""
+    kwargs.setdefault("stepsize_controller", diffrax.PIDController(rtol=TOL, atol=TOL))
+    return cjax.simulate(
+        scene.system(),
+        (0.0, t1),
+        q0,
+        qd0,
+        args,
+        saveat=cjax.SaveAt(ts=jnp.asarray(ts), multipliers=True),
+        max_events=MAX_EVENTS,
+        throw=False,
+        **kwargs,
+    )
+
+
+def _incline(theta, mu_s, mu_k, v0=0.0, t1=1.0):
+    args = incline.default_args(theta=theta, mu_s=mu_s, mu_k=mu_k)
+    q0, qd0 = incline.state(0.0, v0)
+    ts = np.array([0.25, 0.5, 1.0]) * t1
+    return _run(incline, q0, qd0, args, t1, ts), args, ts
+
+
+# --- a block on an incline ----------------------------------------------------
+
+
+def test_incline_sticks_from_rest_below_the_cone():
+    """`tan(theta) < mu_s`: it sticks, `N = m g cos`, `lambda_t = -m g sin`."""
+    traj, args, _ = _incline(0.4, 0.5, 0.3)
+    assert traj.result == cjax.RESULTS.successful
+    assert int(traj.events.count) == 0
+    np.testing.assert_allclose(traj.q, 0.0, atol=1e-12)
+    np.testing.assert_allclose(traj.multipliers[:, 0], incline.normal_force(args))
+    np.testing.assert_allclose(traj.multipliers[:, 1], incline.stick_friction(args))
+
+
+def test_incline_slides_from_rest_above_the_cone():
+    """`tan(theta) > mu_s`: it slides from the start with `g (sin - mu_k cos)`,
+    the friction force `-mu_k N`."""
+    traj, args, ts = _incline(0.6, 0.5, 0.3)
+    assert traj.result == cjax.RESULTS.successful
+    x = incline.displacement(jnp.asarray(ts), 0.0, args)
+    np.testing.assert_allclose(traj.q[:, 0], x, rtol=1e-10)
+    np.testing.assert_allclose(
+        traj.multipliers[:, 1], incline.kinetic_friction(1.0, args), rtol=1e-10
+    )
+
+
+@pytest.mark.parametrize("v0", [2.0, -2.0])
+def test_incline_stops_and_sticks(v0):
+    """Launched downhill (`tan < mu_k`: it decelerates) or uphill: it stops at the
+    closed-form time (1e-9) and sticks; after it, `lambda_t = -m g sin`."""
+    traj, args, ts = _incline(0.25, 0.5, 0.4, v0=v0, t1=3.0)
+    assert traj.result == cjax.RESULTS.successful
+    events = traj.events
+    assert int(events.count) == 1
+    assert not bool(events.impact[0]) and bool(events.attached[0])
+    assert float(events.slip[0]) == 0.0
+    t_stop = incline.stop_time(v0, args)
+    assert abs(float(events.time[0]) - float(t_stop)) < 1e-9
+    x = incline.displacement(jnp.asarray(ts), v0, args)
+    np.testing.assert_allclose(traj.q[:, 0], x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(traj.qd[-1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(traj.multipliers[-1, 1], incline.stick_friction(args))
+
+
+def test_incline_uphill_stops_and_slides_back():
+    """`tan > mu_s`: launched uphill, it stops, and slips the other way."""
+    traj, args, ts = _incline(0.6, 0.5, 0.3, v0=-2.0, t1=1.0)
+    assert traj.result == cjax.RESULTS.successful
+    events = traj.events
+    assert int(events.count) == 1 and float(events.slip[0]) == 1.0
+    assert abs(float(events.time[0]) - float(incline.stop_time(-2.0, args))) < 1e-9
+    x = incline.displacement(jnp.asarray(ts), -2.0, args)
+    np.testing.assert_allclose(traj.q[:, 0], x, rtol=1e-9, atol=1e-12)
+
+
+def test_incline_batch_sticks_and_slips():
+    """One `vmap` batch in which some lanes stick and some slip (`mu_s` varies)."""
+    theta, mu_k = 0.5, 0.2  # tan(0.5) = 0.546
+
+    def final_x(mu_s):
+        traj, _, _ = _incline(theta, mu_s, mu_k)
+        return traj.q[-1, 0]
+
+    mu_s = jnp.array([0.3, 0.5, 0.6, 2.0])
+    x = jax.jit(jax.vmap(final_x))(mu_s)
+    args = incline.default_args(theta=theta, mu_s=0.3, mu_k=mu_k)
+    sliding = incline.displacement(1.0, 0.0, args)
+    np.testing.assert_allclose(x, [sliding, sliding, 0.0, 0.0], rtol=1e-10, atol=1e-12)
+
+
+def test_incline_stop_time_gradient():
+    """`d t_stop / d(mu_k, theta, v0)` through the event, against the closed form."""
+
+    def event_time(p):
+        mu_k, theta, v0 = p
+        traj, _, _ = _incline(theta, 0.5, mu_k, v0=v0, t1=3.0)
+        return traj.events.time[0]
+
+    def closed(p):
+        mu_k, theta, v0 = p
+        args = incline.default_args(theta=theta, mu_s=0.5, mu_k=mu_k)
+        return incline.stop_time(v0, args)
+
+    p = jnp.array([0.4, 0.25, 2.0])
+    np.testing.assert_allclose(jax.grad(event_time)(p), jax.grad(closed)(p), rtol=1e-6)
+
+
+def test_incline_edges():
+    """Careless coefficients: frictionless (`mu = 0`: slides with `g sin`), huge
+    (`1e6`: never slips, even launched), the cone's edge (`tan theta = mu_s = mu_k`:
+    it stays), and a `mu_k > mu_s` from `args` (`invalid_friction`)."""
+    theta = 0.5
+    traj, args, ts = _incline(theta, 0.0, 0.0)
+    assert traj.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(
+        traj.q[:, 0], 0.5 * 9.81 * np.sin(theta) * np.asarray(ts) ** 2, rtol=1e-10
+    )
+    traj, _, _ = _incline(1.2, 1e6, 1e6, v0=0.0)
+    assert traj.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(traj.q, 0.0, atol=1e-12)
+    mu = float(np.tan(theta))
+    traj, _, _ = _incline(theta, mu, mu)
+    assert traj.result == cjax.RESULTS.successful
+    np.testing.assert_allclose(traj.q, 0.0, atol=1e-9)
+    traj, _, _ = _incline(theta, 0.3, 0.4)
+    assert traj.result == cjax.RESULTS.invalid_friction
+    with pytest.raises(Exception, match="mu_k"):
+        args = incline.default_args(theta=theta, mu_s=0.3, mu_k=0.4)
+        q0, qd0 = incline.state()
+        cjax.simulate(incline.system(), (0.0, 1.0), q0, qd0, args, max_events=2)
+
+
+_FLOAT32 = """
+import json, warnings
+warnings.simplefilter("ignore")
+import jax, jax.numpy as jnp
+import constrained_jax as cjax
+from constrained_jax.scenes import incline_block as incline
+args = incline.default_args(0.25, 0.5, 0.4)
+args = {k: v.astype(jnp.float32) for k, v in args.items()}
+q0, qd0 = (v.astype(jnp.float32) for v in incline.state(0.0, 2.0))
+traj = cjax.simulate(incline.system(), (0.0, 3.0), q0, qd0, args, max_events=2,
+                     throw=False)
+print("RESULT" + json.dumps({"x64": bool(jax.config.jax_enable_x64),
+    "dtype": str(traj.q.dtype), "result": str(traj.result),
+    "time": float(traj.events.time[0]), "slip": float(traj.events.slip[0]),
+    "qd": traj.qd[-1].tolist()}))
+"""
+
+
+def test_incline_float32():
+    """float32 (a process with `jax_enable_x64` off, as a float32 user runs): the
+    stop time to float32's event tolerance, at rest after it."""
+    proc = run_python(_FLOAT32, timeout=600, JAX_ENABLE_X64="0")
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT")]
+    assert proc.returncode == 0 and lines, proc.stderr[-3000:]
+    out = json.loads(lines[-1][len("RESULT") :])
+    assert not out["x64"] and out["dtype"] == "float32"
+    assert out["result"] == "successful" and out["slip"] == 0.0
+    t_stop = float(incline.stop_time(2.0, incline.default_args(0.25, 0.5, 0.4)))
+    assert abs(out["time"] - t_stop) < 1e-4 * t_stop
+    np.testing.assert_allclose(out["qd"], 0.0, atol=1e-5)
+
+
+# --- a disk launched sliding on a rough floor ---------------------------------
+
+
+@pytest.mark.parametrize("k", [0.5, 0.4])
+def test_sliding_disk_starts_rolling(k):
+    """A disk (`k = 1/2`: `t* = v0 / (3 mu_k g)`, `v = 2 v0 / 3`) or a sphere
+    (`k = 2/5`: `2 v0 / (7 mu_k g)`, `5 v0 / 7`) launched sliding without spin."""
+    args = disk.default_args(k=k)
+    v0 = 3.0
+    t_star = float(disk.slip_time(v0, 0.0, args))
+    ts = np.array([0.5 * t_star, 1.5 * t_star, 2.0 * t_star])
+    q0, qd0 = disk.state(v0, args)
+    traj = _run(disk, q0, qd0, args, ts[-1], ts)
+    assert traj.result == cjax.RESULTS.successful
+    assert int(traj.events.count) == 1 and float(traj.events.slip[0]) == 0.0
+    assert abs(float(traj.events.time[0]) - t_star) < 1e-9
+    q, qd = jax.vmap(lambda t: disk.motion(t, v0, 0.0, args))(jnp.asarray(ts))
+    np.testing.assert_allclose(traj.q, q, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(traj.qd, qd, rtol=1e-9, atol=1e-11)
+    assert abs(float(traj.qd[-1, 0]) - v0 / (1 + k)) < 1e-10
+    forces = jax.vmap(lambda t: disk.friction_force(t, v0, 0.0, args))(jnp.asarray(ts))
+    np.testing.assert_allclose(traj.multipliers[:, 1], forces, atol=1e-9)
+
+
+def test_sliding_disk_dropped_lands_slides_and_rolls():
+    """Impacts with friction on: dropped from `h` with a horizontal speed and no
+    spin, it lands at `sqrt(2 h / g)` (a frictionless, inelastic impulse: `xdot`
+    kept), slips, and rolls from `t_land + t*` at `v0 / (1 + k)`."""
+    args = disk.default_args()
+    v0, h = 3.0, 0.2
+    q0, qd0 = disk.state(v0, args)
+    q0 = q0.at[1].add(h)
+    t_land = float(np.sqrt(2 * h / float(args["g"])))
+    t_roll = t_land + float(disk.slip_time(v0, 0.0, args))
+    traj = _run(disk, q0, qd0, args, t_roll + 0.5, [t_land / 2, t_roll, t_roll + 0.5])
+    assert traj.result == cjax.RESULTS.successful
+    events = traj.events
+    assert int(events.count) == 2
+    assert bool(events.impact[0]) and bool(events.attached[0])
+    assert float(events.slip[0]) == 1.0 and float(events.slip[1]) == 0.0
+    assert abs(float(events.time[0]) - t_land) < 1e-9
+    assert abs(float(events.time[1]) - t_roll) < 1e-9
+    assert abs(float(traj.qd[-1, 0]) - v0 / (1 + float(args["k"]))) < 1e-9
+
+
+# --- the lecture's two cylinders with a finite coefficient --------------------
+
+
+def _cylinders(mu_s, mu_k, theta0=0.3, t1=1.2):
+    args = cylinders.default_args(mu_s=mu_s, mu_k=mu_k)
+    q0, qd0 = cylinders.state(jnp.asarray(theta0), jnp.asarray(0.0), args)
+    return _run(cylinders, q0, qd0, args, t1, [0.3, 0.6, t1]), args
+
+
+@pytest.fixture(scope="module", params=[0.2, 0.3])
+def slipping_cylinders(request):
+    """`mu_s = 0.3`; `mu_k = 0.2`, and `mu_k = mu_s` (no jump in the friction
+    force at the slip: the slip velocity grows from zero quadratically)."""
+    return _cylinders(0.3, request.param)
+
+
+def test_cylinders_slip_before_they_detach(slipping_cylinders):
+    """Rolling from rest at `theta0`, the contact slips where `alpha sin(theta) =
+    mu_s ((3 + alpha) cos(theta) - 2 cos(theta0))` (1e-9), before the frictionless
+    detachment angle; it then slides with kinetic friction until the normal force
+    vanishes, where the independent integration of the sliding equations says
+    (time and state, 1e-8)."""
+    traj, args = slipping_cylinders
+    theta0 = 0.3
+    assert traj.result == cjax.RESULTS.successful
+    events = traj.events
+    assert int(events.count) == 2
+    assert float(events.slip[0]) == 1.0 and bool(events.attached[0])
+    assert not bool(events.attached[1]) and not bool(events.impact[1])
+    reference = cylinders.slip_and_detachment(theta0, args)
+    assert abs(float(events.q[0, 1]) - reference.theta_slip) < 1e-9
+    assert abs(float(events.time[0]) - reference.t_slip) < 1e-9
+    assert reference.theta_slip < float(cylinders.detachment_angle(theta0, args))
+    assert abs(float(events.time[1]) - reference.t_detach) < 1e-8
+    np.testing.assert_allclose(events.q[1], reference.q_detach, rtol=1e-8)
+    np.testing.assert_allclose(events.qd[1], reference.qd_detach, rtol=1e-7, atol=1e-8)
+
+
+def test_cylinders_slip_angle_batch_and_gradient():
+    """`vmap` over `mu_s`, from one that slips soon (`mu_s = 0.15`) to one that
+    rolls nearly to detachment (`mu_s = 50`), and `d theta_s / d mu_s` through the
+    event against the closed form. A contact that slips from the start (`mu_s =
+    0.05`: the cone is left at `theta0`) records no slip event: its first is the
+    release."""
+
+    def first_event(mu_s):
+        traj, _ = _cylinders(mu_s, 0.5 * mu_s)
+        return traj.events.q[0, 1], traj.events.attached[0]
+
+    mu_s = jnp.array([0.15, 0.3, 1.0, 50.0])
+    angles, attached = jax.jit(jax.vmap(first_event))(mu_s)
+
+    def closed(m):
+        return cylinders.slip_angle(0.3, cylinders.default_args(mu_s=m, mu_k=0.5 * m))
+
+    assert bool(jnp.all(attached))
+    np.testing.assert_allclose(angles, jax.vmap(closed)(mu_s), atol=1e-9)
+    np.testing.assert_allclose(
+        jax.grad(lambda m: first_event(m)[0])(0.3), jax.grad(closed)(0.3), rtol=1e-6
+    )
+    assert abs(float(closed(0.05)) - 0.3) < 1e-15
+    traj, _ = _cylinders(0.05, 0.025)
+    assert traj.result == cjax.RESULTS.successful
+    assert not bool(traj.events.attached[0])
+
+
+# --- the Painleve rod -----------------------------------------------------------
+
+
+def _rod(q0, qd0, args, t1):
+    return _run(rod, q0, qd0, args, t1, [t1 / 4, t1 / 2, t1])
+
+
+def test_painleve_rod_refused_above_the_critical_coefficient():
+    """At `tan(theta) = 2` (critical coefficient `4/3`), sliding with its lower end
+    leading: `mu = 1.5` has no consistent motion (`painleve_paradox`, never
+    `successful`); the other slip direction, and `mu = 1.2`, run."""
+    theta = float(np.arctan(2.0))
+    assert abs(float(rod.critical_mu(theta)) - 4 / 3) < 1e-12
+    args = rod.default_args(mu_s=1.5, mu_k=1.5)
+    q0, qd0 = rod.state(theta, 1.0, args)
+    traj = _rod(q0, qd0, args, 0.05)
+    assert traj.result == cjax.RESULTS.painleve_paradox
+    with pytest.raises(Exception, match="Painleve"):
+        cjax.simulate(rod.system(), (0.0, 0.05), q0, qd0, args, max_events=2)
+    q0, qd0 = rod.state(theta, -1.0, args)
+    assert _rod(q0, qd0, args, 0.05).result == cjax.RESULTS.successful
+
+
+def test_painleve_rod_slides_below_it():
+    """Below the critical coefficient: the state, the normal force and the
+    friction work at `t = 0.2` of the independent integration."""
+    args = rod.default_args()
+    q0, qd0 = rod.default_state(args)
+    traj = _rod(q0, qd0, args, 0.2)
+    assert traj.result == cjax.RESULTS.successful
+    assert int(traj.events.count) == 0
+    q, qd, normal, _ = rod.sliding_reference(q0, qd0, 0.2, args)
+    np.testing.assert_allclose(traj.q[-1], q, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(traj.qd[-1], qd, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(traj.multipliers[-1, 0], normal, rtol=1e-9)
+
+
+def test_painleve_rod_sticks_and_slips_back():
+    """Slides forwards, sticks, slips backwards: the switch times (1e-9) and the
+    state at the end against the independent stick-slip integration."""
+    args = rod.default_args(mu_s=0.7, mu_k=0.6)
+    q0, qd0 = rod.stick_slip_state(args)
+    traj = _rod(q0, qd0, args, 0.38)
+    assert traj.result == cjax.RESULTS.successful
+    switches, q, qd = rod.stick_slip_reference(q0, qd0, 0.38, args)
+    events = traj.events
+    count = int(events.count)
+    assert count == len(switches) - 1
+    for i, (t, mode) in enumerate(switches[1:]):
+        assert abs(float(events.time[i]) - t) < 1e-9
+        assert float(events.slip[i]) == mode
+    np.testing.assert_allclose(traj.q[-1], q, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(traj.qd[-1], qd, rtol=1e-8, atol=1e-9)
+
+
+# --- refusals -----------------------------------------------------------------
+
+
+def test_coefficients_refused_where_given():
+    tangent = cjax.Pfaffian(lambda q, t, args: jnp.array([[1.0, 0.0]]))
+    with pytest.raises(ValueError, match="must not exceed"):
+        cjax.Coulomb(tangent, mu_s=0.3, mu_k=0.5)
+    for bad in (-0.1, float("nan"), "rough"):
+        with pytest.raises(ValueError, match="mu_s"):
+            cjax.Coulomb(tangent, mu_s=bad)
+    with pytest.raises(ValueError, match="mu_k"):
+        cjax.Coulomb(tangent, mu_s=float("inf"), mu_k=float("inf"))
+    with pytest.raises(ValueError, match="tangential row"):
+        cjax.Coulomb(lambda q, t, args: q, mu_s=0.3)
+    with pytest.raises(ValueError, match="Coulomb"):
+        cjax.Unilateral(cjax.Holonomic(lambda q, t, args: q[1]), friction=0.3)
+
+
+def test_friction_needs_events_and_one_tangential_row():
+    args = incline.default_args()
+    q0, qd0 = incline.state()
+    with pytest.raises(ValueError, match="max_events"):
+        cjax.simulate(incline.system(), (0.0, 1.0), q0, qd0, args)
+    two_rows = cjax.Unilateral(
+        cjax.Holonomic(rod.gap),
+        gap=rod.gap,
+        restitution=0.0,
+        friction=cjax.Coulomb(cjax.Pfaffian(lambda q, t, a: jnp.eye(3)[:2]), mu_s=0.5),
+    )
+    system = cjax.LagrangianSystem(rod.lagrangian, two_rows)
+    args = rod.default_args()
+    q0, qd0 = rod.default_state(args)
+    with pytest.raises(ValueError, match="one row"):
+        cjax.simulate(system, (0.0, 1.0), q0, qd0, args, max_events=2)
