@@ -29,6 +29,7 @@ SCENES = [
     "pendulum",
     "two_cylinders",
     "bouncing_ball",
+    "friction",
     "rolling_disk",
     "rotating_hoop",
     "catenary",
@@ -38,6 +39,7 @@ SCENES = [
 PICTURES = [
     "cylinder_extremum.png",
     "two_cylinders_normal_force.png",
+    "friction_two_cylinders.png",
     "catenary.png",
     "work_precision.png",
 ]

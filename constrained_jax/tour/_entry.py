@@ -96,11 +96,12 @@ class Job:
     draw: bool = True  # keep its pictures
     note: str = ""
     seconds: float | None = None
+    refused: bool = False  # a refusal is what it checks: no warning for it
 
     def rows(self, out) -> tuple[list[Row], Pictures]:
         """The finished checks as rows; warns when the solver reports a failure (it
         shows up in the checks as a wrong number or NaN, too)."""
-        if out.result != cjax.RESULTS.successful:
+        if out.result != cjax.RESULTS.successful and not self.refused:
             print(f"warning: {self.label}: {cjax.RESULTS[out.result]}", file=sys.stderr)
         checks, pictures = self.finish(out)
         rows = [
