@@ -30,7 +30,7 @@ Sliding with `s = sign(v_t)` (`s = +1`: the lower end leading) and the contact h
 `lambda_t = -s mu N`: `thetaddot = -3 N (cos(theta) - s mu sin(theta)) / (m l)` and
 
     N = m (g - l sin(theta) thetadot^2) / D,
-    D = 1 + 3 cos^2(theta) - 3 s mu sin(theta) cos(theta).
+    D = 1 + 3 cos^2(theta) - 3 mu s sin(theta) cos(theta).
 
 For `s = -1`, `D > 0` always. For `s = +1`, `D > 0` (the contact problem has exactly
 one solution, whatever the sign of the numerator: `N >= 0` held, or lift-off) iff
@@ -135,7 +135,7 @@ def critical_mu(theta):
 
 
 def consistency(theta, mu, s):
-    """`D = 1 + 3 cos^2(theta) - 3 s mu sin(theta) cos(theta)` (`s = sign(v_t)`):
+    """`D = 1 + 3 cos^2(theta) - 3 mu s sin(theta) cos(theta)` (`s = sign(v_t)`):
     positive where the sliding contact problem has one solution."""
     c = jnp.cos(theta)
     return 1 + 3 * c**2 - 3 * s * mu * jnp.sin(theta) * c
