@@ -485,7 +485,8 @@ def decide_slip(plan: Plan, system, active, slip, which, t, q, qd, args, moving=
     normal = group.sign * lam[first]
     force = lam[tangent]
     mu_s = jnp.asarray(coulomb.coefficients(args)[0], q.dtype)
-    inside = jnp.abs(force) <= mu_s * normal
+    # (`mu_s = inf` never slips, also where `N = 0`.)
+    inside = jnp.isinf(mu_s) | (jnp.abs(force) <= mu_s * normal)
     return jnp.where(
         moving, jnp.sign(v_t), jnp.where(inside, 0.0, -jnp.sign(force))
     ).astype(q.dtype)
