@@ -25,9 +25,9 @@ TOL = 1e-12  # the integration tolerance (rtol = atol)
 MAX_EVENTS = 6
 
 
-def _run(scene, q0, qd0, args, t1, ts, **kwargs):
+def _run(scene, q0, qd0, args, t1, ts, throw=False, **kwargs):
     """One program per scene (and dtype): three save times, multipliers, six
-    events; everything else traced."""
+    events; everything else traced (`throw` acts after the program)."""
     kwargs.setdefault("stepsize_controller", diffrax.PIDController(rtol=TOL, atol=TOL))
     return cjax.simulate(
         scene.system(),
@@ -37,7 +37,7 @@ def _run(scene, q0, qd0, args, t1, ts, **kwargs):
         args,
         saveat=cjax.SaveAt(ts=jnp.asarray(ts), multipliers=True),
         max_events=MAX_EVENTS,
-        throw=False,
+        throw=throw,
         **kwargs,
     )
 
@@ -171,7 +171,7 @@ def test_incline_edges():
     with pytest.raises(Exception, match="mu_k"):
         args = incline.default_args(theta=theta, mu_s=0.3, mu_k=0.4)
         q0, qd0 = incline.state()
-        cjax.simulate(incline.system(), (0.0, 1.0), q0, qd0, args, max_events=2)
+        _run(incline, q0, qd0, args, 1.0, [0.25, 0.5, 1.0], throw=True)
 
 
 _FLOAT32 = """
@@ -361,7 +361,7 @@ def test_painleve_rod_refused_above_the_critical_coefficient():
     traj = _rod(q0, qd0, args, 0.05)
     assert traj.result == cjax.RESULTS.painleve_paradox
     with pytest.raises(Exception, match="Painleve"):
-        cjax.simulate(rod.system(), (0.0, 0.05), q0, qd0, args, max_events=2)
+        _run(rod, q0, qd0, args, 0.05, [0.0125, 0.025, 0.05], throw=True)
     q0, qd0 = rod.state(theta, -1.0, args)
     assert _rod(q0, qd0, args, 0.05).result == cjax.RESULTS.successful
 
