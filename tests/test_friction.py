@@ -432,3 +432,54 @@ def test_friction_needs_events_and_one_tangential_row():
     q0, qd0 = rod.default_state(args)
     with pytest.raises(ValueError, match="one row"):
         cjax.simulate(system, (0.0, 1.0), q0, qd0, args, max_events=2)
+
+
+def test_two_contacts_each_with_its_own_friction():
+    """Two blocks on one incline, each with its own contact and coefficients (two
+    groups with friction: the rows, the events and the modes kept apart): the one
+    launched uphill on a steep slope stops and slides back, the one launched
+    downhill on a rough patch stops and sticks."""
+
+    def lagrangian(q, qd, t, args):
+        first = incline.lagrangian(q[:2], qd[:2], t, args)
+        return first + incline.lagrangian(q[2:], qd[2:], t, args)
+
+    def contact(offset, mu_s, mu_k):
+        gap = lambda q, t, a: q[offset + 1]
+        row = lambda q, t, a: jnp.eye(4)[offset][None]
+        return cjax.Unilateral(
+            cjax.Holonomic(gap),
+            gap=gap,
+            restitution=0.0,
+            friction=cjax.Coulomb(
+                cjax.Pfaffian(row), mu_s=lambda a: a[mu_s], mu_k=lambda a: a[mu_k]
+            ),
+        )
+
+    system = cjax.LagrangianSystem(
+        lagrangian, [contact(0, "mu_s", "mu_k"), contact(2, "mu_s2", "mu_k2")]
+    )
+    theta = 0.5  # tan = 0.546
+    args = incline.default_args(theta=theta, mu_s=0.5, mu_k=0.3)
+    args |= {"mu_s2": jnp.asarray(0.9), "mu_k2": jnp.asarray(0.8)}
+    q0 = jnp.zeros(4)
+    qd0 = jnp.array([-2.0, 0.0, 1.0, 0.0])
+    traj = cjax.simulate(
+        system, (0.0, 1.0), q0, qd0, args, max_events=4, throw=False,
+        stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
+    )  # fmt: skip
+    assert traj.result == cjax.RESULTS.successful
+    second = dict(args, mu_s=args["mu_s2"], mu_k=args["mu_k2"])
+    events = traj.events
+    assert int(events.count) == 2
+    group, time, slip = (
+        np.asarray(v[:2]) for v in (events.group, events.time, events.slip)
+    )
+    times = {int(g): float(t) for g, t in zip(group, time, strict=True)}
+    slips = {int(g): float(s) for g, s in zip(group, slip, strict=True)}
+    assert abs(times[0] - float(incline.stop_time(-2.0, args))) < 1e-9
+    assert abs(times[1] - float(incline.stop_time(1.0, second))) < 1e-9
+    assert slips == {0: 1.0, 1: 0.0}
+    x1 = incline.displacement(1.0, -2.0, args)
+    x2 = incline.displacement(1.0, 1.0, second)
+    np.testing.assert_allclose(traj.q[0, [0, 2]], [x1, x2], rtol=1e-9)
