@@ -525,12 +525,16 @@ class Chebyshev(AbstractDiscretization):
 
         which covers both algebraic decay (`p` small: a singular solution) and
         exponential decay (`p` large, the factor tends to 1). A tail that does not
-        decay (`p <= 3/2`: a plateau above round-off, or a slowly decaying series)
-        counts as `N - 2` coefficients of its size, `4 E_{N-2} (N - 2)`; the
-        estimate never exceeds `max |c_k|`, the size of the function. A
-        tail already at round-off (`E_{N-2} <= N^2 eps max |c_k|`, the conditioning
-        of spectral differentiation) gives that round-off level: it grows like
-        `N^2`, and the default tolerance is floored there (`roundoff_rtol`).
+        decay (`p <= 3/2`: a plateau above round-off, a slowly decaying series, or
+        a tail that grows towards `N`, the trace of a layer narrower than the grid at
+        an end) is not extrapolated beyond `N`: it is itself the part of the
+        interpolant the grid does not resolve, and counts as what it holds, twice
+        the sum of its coefficients `2 sum_{k >= (N-2)/2} max|c_k|` (a flat plateau
+        `E`: `N E`). The estimate never exceeds `max |c_k|`, the size of the
+        function. A tail already at round-off (`E_{N-2} <= N^2 eps max |c_k|`, the
+        conditioning of spectral differentiation) gives that round-off level: it
+        grows like `N^2`, and the default tolerance is floored there
+        (`roundoff_rtol`).
         """
         n = self.num_nodes
         dtype = values.dtype
@@ -546,8 +550,9 @@ class Chebyshev(AbstractDiscretization):
         ratio = math.log((n - 2) / mid_index) if n - 2 > mid_index else 1.0
         safe_last = jnp.where(last > 0, last, 1.0)
         p = jnp.log(jnp.where(last > 0, mid / safe_last, 1.0)) / ratio
-        factor = jnp.maximum(1.0, (n - 2) / jnp.maximum(p - 1, 0.5))
-        tail = jnp.minimum(2 * last * factor, scale)
+        decaying = 2 * last * jnp.maximum(1.0, (n - 2) / jnp.maximum(p - 1, 0.5))
+        held = 2 * jnp.sum(mags[mid_index:])
+        tail = jnp.minimum(jnp.where(p > 1.5, decaying, held), scale)
         return jnp.where(last <= noise, noise, tail)
 
     @property

@@ -11,9 +11,13 @@
   for `Chebyshev` and `PiecewiseLinear`, symmetric and asymmetric ends, as values
   at the nodes and under `jax.jit`.
 - the brachistochrone on `Graded(Chebyshev(N), left=3)` with no `y0`: the default
-  start is straight in the graded variable; the cycloid where it converges, never
-  singular at the start; the straight line in `x` as `y0` is refused as a
-  singular start (`functional_singular_start`), in words that blame the start.
+  start is straight in the graded variable; the cycloid at 24 to 64 nodes (at 64
+  the error, a layer at the cusp narrower than the grid, leaves a coefficient tail
+  that grows towards `N`: estimated as the sum of the tail, no longer refused),
+  refused and never singular at the start at 16 nodes and on the graded mesh
+  (no discrete stationary point near the cycloid there); the straight line in `x`
+  as `y0` is refused as a singular start (`functional_singular_start`), in words
+  that blame the start.
 - the same integral constraint twice, from the default start, from a `y0`, with
   `PiecewiseLinear` and through MINRES: `functional_redundant_constraints`; a rope
   as long as its chord: the same status, in words written for functionals.
@@ -64,6 +68,29 @@ def test_resolved_function_never_refused_by_more_nodes(n):
     true_error = 1 / (2 * (n - 1))  # sqrt(x) has coefficients ~ k^-2: >> 1e-10
     assert estimate > _default_bound(disc, rough), n
     assert estimate > true_error / 10
+
+
+@pytest.mark.parametrize("n", [32, 64, 128])
+def test_estimate_of_a_layer_narrower_than_the_grid(n):
+    """A resolved function (`exp`) plus a bump at the first interior node: a layer
+    at an end narrower than the grid, as a solve leaves at a cusp. Its coefficient
+    tail grows towards `N` (no decay). The estimate bounds the interpolant's error
+    against the resolved function and is not `N` times it: the tail counts as what
+    it holds, not as `N - 2` coefficients of its largest (8 times the error)."""
+    disc = cjax.Chebyshev(n)
+    interval = (jnp.asarray(0.0), jnp.asarray(1.0))
+    x = np.asarray(disc.nodes(interval))
+    bump = 1e-8
+    values = np.exp(x)
+    values[1] += bump
+    values = jnp.asarray(values)[:, None]
+    estimate = float(disc.error_estimate(values, interval))
+    xs = np.concatenate([np.linspace(0.0, 1.0, 4001), np.linspace(0.0, x[3], 401)])
+    interpolant = jax.vmap(lambda t: disc.interpolate(interval, values, t))
+    error = np.max(np.abs(np.asarray(interpolant(jnp.asarray(xs)))[:, 0] - np.exp(xs)))
+    assert error >= bump  # (the bump itself, at its node)
+    assert error <= estimate, (error, estimate)
+    assert estimate <= 4 * error, (error, estimate)
 
 
 def test_tolerance_floor_is_the_plateau():
@@ -231,9 +258,13 @@ def _default_brachistochrone(n):
     )
 
 
-@pytest.mark.parametrize("n", [24, 32])
+@pytest.mark.parametrize("n", [24, 32, 48, 64])
 def test_graded_brachistochrone_default_start(n):
-    """No `y0`, no knowledge of the cusp: the cycloid."""
+    """No `y0`, no knowledge of the cusp: the cycloid. At 64 nodes the error
+    (~8e-9, at the first nodes) is within the default tolerance (1.9e-8), and so
+    is the estimate: the coefficient tail grows towards `N` (a layer at the cusp
+    narrower than the grid) and counts as the sum of its coefficients, not as
+    `N - 2` coefficients of its largest (3.3e-7)."""
     sol = _default_brachistochrone(n)
     assert sol.result == cjax.RESULTS.successful, n
     assert abs(float(sol.value) - T_MIN) < 1e-8 * T_MIN
@@ -243,10 +274,8 @@ def test_graded_brachistochrone_default_start(n):
     assert error <= 10 * float(sol.stats["error_estimate"])
 
 
-@pytest.mark.parametrize("n", [16, 64])
-def test_graded_brachistochrone_default_start_right_or_refused(n):
-    """Other sizes: the cycloid, or a refusal that is not a singular start."""
-    sol = _default_brachistochrone(n)
+def _right_or_refused(sol):
+    """The cycloid, or a refusal that is not a singular start."""
     assert sol.result != cjax.RESULTS.functional_singular_start
     assert sol.result != cjax.RESULTS.functional_singular_kkt
     xs = np.linspace(0.0, END[0], 101)
@@ -254,6 +283,33 @@ def test_graded_brachistochrone_default_start_right_or_refused(n):
     if sol.result == cjax.RESULTS.successful:
         assert error <= float(sol.stats["error_tolerance"])
         assert abs(float(sol.value) - T_MIN) < 1e-6 * T_MIN
+    if sol.result == cjax.RESULTS.discretization_error:
+        assert error <= 10 * float(sol.stats["error_estimate"])
+
+
+def test_graded_brachistochrone_default_start_right_or_refused():
+    """16 nodes: the discrete problem has no stationary point near the cycloid
+    (the gradient's norm, minimised by Levenberg-Marquardt from where Newton
+    stalls, levels off at 1e-4): the end-slope mode in the graded variable,
+    whose first variation at the cycloid is not zero (the cusp is a boundary
+    minimum in it), is balanced only by the quadrature's error near the cusp, at
+    some sizes and not at others. Refused, or right."""
+    _right_or_refused(_default_brachistochrone(16))
+
+
+@pytest.mark.parametrize("n", [51, 101])
+def test_graded_mesh_brachistochrone_default_start_right_or_refused(n):
+    """`Graded(PiecewiseLinear(N), left=3)` from the default start: refused
+    today (no discrete stationary point near the cycloid: from the cycloid itself
+    at the nodes, Levenberg-Marquardt on the gradient levels off at 6e-3 for 101
+    nodes), never a wrong `successful`."""
+    sol = cjax.solve_functional(
+        BRACHISTOCHRONE,
+        None,
+        discretization=cjax.Graded(cjax.PiecewiseLinear(n), left=3),
+        throw=False,
+    )
+    _right_or_refused(sol)
 
 
 def test_graded_brachistochrone_straight_start_blames_the_start():
