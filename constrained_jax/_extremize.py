@@ -54,6 +54,7 @@ from ._misc import (
 )
 from ._results import raise_if_failed, RESULTS
 from ._solver.dense_lu import dense_factor, dense_solve, DenseLU
+from ._solver.equilibrated_lu import EquilibratedDenseLU
 from ._solver.fallback import Fallback
 from ._solver.globalization import conjugate_gradient_mv
 from ._solver.kkt_solver import AbstractKKTSolver
@@ -90,9 +91,12 @@ def default_solver(
     - at most 8 MiB (`n + k <= 1024` in float64, `1448` in float32):
         [`constrained_jax.DenseLU`][], which forms the KKT matrix and factors it
         (unrolled elimination for tiny systems, LAPACK's LU above) at every Newton
-        step. Its cost, at most `n + k` Hessian-vector products and
-        `2 (n + k)^3 / 3` flops (under a gigaflop) per step, does not depend on the
-        conditioning of the problem; above this size it grows to seconds per step.
+        step; in float32 [`constrained_jax.EquilibratedDenseLU`][] (rows and
+        columns scaled first, so that its pivot test, about `1e-5 m` of the largest
+        entry, does not take a badly scaled matrix for a singular one). Its cost,
+        at most `n + k` Hessian-vector products and `2 (n + k)^3 / 3` flops
+        (under a gigaflop) per step, does not depend on the conditioning of the
+        problem; above this size it grows to seconds per step.
     - larger: matrix-free [`constrained_jax.MINRES`][] with its diagonal
         (row-norm, Jacobi-type) preconditioner, whose cost per iteration is one
         Hessian-vector product and whose memory is a few vectors. It stops on the
@@ -100,18 +104,25 @@ def default_solver(
         `max(1000, n + k)` iterations. While the matrix takes at most 128 MiB
         (`n + k <= 4096` in float64) a Newton step whose MINRES solve does not
         converge is solved by `DenseLU` instead; above, it is reported as
-        `RESULTS.linear_solve_failed`, never a wrong answer.
+        `RESULTS.linear_solve_failed`, never a wrong answer (in float32 the
+        fallback is `EquilibratedDenseLU`).
 
     (`dense_bytes`, `fallback_bytes`: the two memory bounds, 8 MiB and 128 MiB.)
     """
     size = n + k
     itemsize = jnp.dtype(dtype).itemsize
+    # In float32 the dense solve equilibrates first: DenseLU's pivot test, `10 m eps
+    # max|K|`, is then about 1e-5 m of the largest entry, and a badly scaled KKT
+    # matrix (Hessian entries `1/x_i` next to constraint rows of ones) would pass for
+    # singular.
+    single = jnp.dtype(dtype).itemsize <= 4
     if size**2 * itemsize <= dense_bytes:
-        return Newton()
+        return Newton(linear_solver=EquilibratedDenseLU()) if single else Newton()
     rtol = max(1e-12, 1000 * float(jnp.finfo(dtype).eps))
     krylov = MINRES(rtol=rtol, atol=0.0, max_steps=max(1000, size))
     if size**2 * itemsize <= fallback_bytes:
-        return Newton(linear_solver=Fallback(krylov, DenseLU(unroll_max=0)))
+        dense = EquilibratedDenseLU() if single else DenseLU(unroll_max=0)
+        return Newton(linear_solver=Fallback(krylov, dense))
     return Newton(linear_solver=krylov)
 
 

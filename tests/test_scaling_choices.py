@@ -46,10 +46,13 @@ def test_default_solver_is_chosen_by_memory():
     # The boundary is inclusive: (n + k)^2 * 8 bytes = 8 MiB at n + k = 1024.
     boundary = _extremize.default_solver(1023, 1, jnp.float64)
     assert isinstance(boundary.linear_solver, cjax.DenseLU)
-    # float32 entries take half the memory.
+    # float32 entries take half the memory; the dense solve equilibrates first.
     assert isinstance(
-        _extremize.default_solver(1400, 3, jnp.float32).linear_solver, cjax.DenseLU
+        _extremize.default_solver(1400, 3, jnp.float32).linear_solver,
+        cjax.EquilibratedDenseLU,
     )
+    single = _extremize.default_solver(1448, 1, jnp.float32).linear_solver
+    assert isinstance(single.second, cjax.EquilibratedDenseLU)
     fallback = _extremize.default_solver(1024, 1, jnp.float64).linear_solver
     assert isinstance(fallback, Fallback)
     assert isinstance(fallback.first, cjax.MINRES)

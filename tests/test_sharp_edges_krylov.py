@@ -123,13 +123,10 @@ def test_maximum_entropy_float32_minres():
     _check(sol, n, rtol=1e-4)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="DenseLU's singularity test (pivot <= 10 m eps max|K|) takes the badly "
-    "scaled float32 KKT matrix (entries 1/x_i next to constraint rows of ones) for "
-    "singular; EquilibratedDenseLU solves it. Not fixed here.",
-)
 def test_maximum_entropy_float32_default():
+    """float32 with the defaults: the dense solve equilibrates first (DenseLU's pivot
+    test, `10 m eps max|K|`, would take the badly scaled KKT matrix, entries `1/x_i`
+    next to constraint rows of ones, for singular)."""
     n = 100
     sol = _maximise(n, None, dtype=jnp.float32)
     _check(sol, n, rtol=1e-4)
