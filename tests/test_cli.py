@@ -95,7 +95,7 @@ def test_tour_reads_on_a_newcomer_screen(tour):
     _, out, _ = tour
     lines = out.splitlines()
     assert max(len(line) for line in lines) <= 100
-    assert lines[0].startswith("The first run compiles 12 programs")
+    assert lines[0].startswith("The first run compiles 16 programs")
     start = " ".join(out[: out.index("quantity")].split())
     # The suite turns the compilation cache off (`conftest.py`); with it on:
     assert "The compilation cache is off: every run compiles them." in start

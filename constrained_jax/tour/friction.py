@@ -94,9 +94,7 @@ def build(label: str, mu_s: float, mu_k: float, theta0: float, v0: float) -> lis
             ),
         ], {}
 
-    jobs.append(
-        Job(f"{label} incline", INCLINE, (*arrays(-v0, t_end), block), finish_incline)
-    )
+    jobs.append(Job(label, INCLINE, (*arrays(-v0, t_end), block), finish_incline))
 
     # The disk launched sliding without spin.
     disk = sliding_disk.default_args(mu_s=mu_s, mu_k=mu_k)
@@ -110,9 +108,7 @@ def build(label: str, mu_s: float, mu_k: float, theta0: float, v0: float) -> lis
             Check("disk: rolling speed 2 v0/3", traj.qd[0, 0], 2 * v0 / 3, 1e-9),
         ], {}
 
-    jobs.append(
-        Job(f"{label} disk", DISK, (*arrays(v0, 2 * t_roll), disk), finish_disk)
-    )
+    jobs.append(Job(label, DISK, (*arrays(v0, 2 * t_roll), disk), finish_disk))
 
     # The lecture's two cylinders: slip before the frictionless detachment angle.
     args = cylinders.default_args(mu_s=mu_s, mu_k=mu_k)
@@ -161,7 +157,7 @@ def build(label: str, mu_s: float, mu_k: float, theta0: float, v0: float) -> lis
 
     jobs.append(
         Job(
-            f"{label} cylinders",
+            label,
             CYLINDERS,
             (*arrays(theta0, t_cylinders), args),
             finish_cylinders,
@@ -169,9 +165,9 @@ def build(label: str, mu_s: float, mu_k: float, theta0: float, v0: float) -> lis
     )
 
     # The Painleve rod at tan(theta) = 2 (critical coefficient 4/3), its lower end
-    # leading: refused above, run below (normal force at the start in closed form).
+    # leading: run below (normal force at the start in closed form), refused above.
     theta = float(np.arctan(2.0))
-    for mu, paradox in ((1.5, True), (mu_k, False)):
+    for mu, paradox in ((mu_k, False), (1.5, True)):
         rod = painleve_rod.default_args(mu_s=max(mu, mu_s), mu_k=mu)
         q0, qd0 = painleve_rod.state(theta, 1.0, rod)
 
@@ -190,11 +186,13 @@ def build(label: str, mu_s: float, mu_k: float, theta0: float, v0: float) -> lis
 
         jobs.append(
             Job(
-                f"{label} rod mu={mu:g}",
+                f"{label}(rod mu={mu:g})" if paradox else label,
                 ROD,
                 (*arrays(theta, 1.0, 0.05), rod),
                 finish_rod,
-                note="above the critical coefficient: refused" if paradox else "",
+                note="above the rod's critical coefficient 4/3: refused"
+                if paradox
+                else "",
                 refused=paradox,
             )
         )
