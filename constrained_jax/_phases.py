@@ -564,10 +564,7 @@ def _event_values(contacts, active, system, offsets, friction, t, y, args):
     if friction is None:
         return primary
     stick_slip = friction.values(contacts, active, t, y, args, lam) - friction.offsets
-    per_group = jnp.ones(primary.shape, lam.dtype)
-    groups = np.asarray([i for i, r in enumerate(friction.tangents) if r >= 0])
-    per_group = per_group.at[groups].set(consistency)
-    paradox = jnp.where(active & (friction.slip != 0), per_group, jnp.inf)
+    paradox = friction.consistency(active, consistency)
     return jnp.concatenate([primary, stick_slip, paradox])
 
 
@@ -604,6 +601,15 @@ class _Friction(eqx.Module):
     mu_s: Float[Array, " g"]
     slip: Float[Array, " g"] | None = None
     offsets: Float[Array, " g"] | None = None
+
+    def consistency(self, active, consistency):
+        """Per group: the coefficient of its normal multiplier in the coupled
+        system (`friction_dynamics`'s `consistency`, per contact with friction)
+        where it slips, `inf` for the others."""
+        per_group = jnp.ones((len(self.tangents),), consistency.dtype)
+        groups = np.asarray([i for i, r in enumerate(self.tangents) if r >= 0])
+        per_group = per_group.at[groups].set(consistency)
+        return jnp.where(active & (self.slip != 0), per_group, jnp.inf)
 
     def values(self, contacts, active, t, y, args, lam):
         """Per group with friction, attached: `mu_s N - |lambda_t|` while it sticks
@@ -811,8 +817,12 @@ class _ContactRun:
         else:
             lam_start, consistency = _coupled(held, t_start, y_start, self.args)
             # A slipping contact whose coupled system has no solution (or several):
-            # the Painleve paradox, refused without integrating.
-            paradox = jnp.any(consistency <= 0)
+            # the Painleve paradox, refused without integrating, recorded as an
+            # event of that contact (kind 2, as inside a phase).
+            friction = _Friction(self.friction.tangents, self.friction.mu_s, c["slip"])
+            per_group = friction.consistency(active, consistency)
+            paradox = jnp.any(per_group <= 0)
+            paradox_event = 2 * self.num_groups + jnp.argmin(per_group)
         start = _watched(contacts, active, lam_start)
         # A multiplier that already pulls is released at once, without integrating.
         pulls = (jnp.any(active) & (start < 0)) | paradox
@@ -821,8 +831,9 @@ class _ContactRun:
             saved = self._saved(c)
             pushing = contacts.pushing(lam_start, active)
             which = jnp.asarray(jnp.argmin(pushing), int)
-            # (A paradox at the start is no event: the run stops there.)
-            end = (t_start, c["q"], c["qd"], jnp.invert(paradox), which)
+            if self.friction is not None:
+                which = jnp.where(paradox, paradox_event, which)
+            end = (t_start, c["q"], c["qd"], jnp.array(True), which)
             return end, RESULTS.successful, saved, c["stats"]
 
         integrate = functools.partial(
@@ -842,13 +853,8 @@ class _ContactRun:
                 (released[0], released[2], released[3]),
                 (run[0], run[2], run[3]),
             )
-        new = self.record(c, end, result, pulls)
+        new = self.record(c, end, result, pulls & jnp.invert(paradox))
         new.update(saved, stats=stats)
-        if self.friction is not None:
-            new.update(
-                done=new["done"] | paradox,
-                result=RESULTS.where(paradox, RESULTS.painleve_paradox, new["result"]),
-            )
         return new
 
     def _saved(self, c) -> dict:
@@ -1005,7 +1011,8 @@ class _ContactRun:
                 active2, slip, which, t2, q2, qd2, is_release | is_contact,
                 is_transition, attach,
             )  # fmt: skip
-            attach = attach | is_transition
+            # (A paradox leaves the group attached, in its slip.)
+            attach = attach | is_transition | (happened & (kind == 2))
             result = RESULTS.where(
                 happened & (kind == 2), RESULTS.painleve_paradox, result
             )

@@ -136,10 +136,10 @@ class RESULTS(diffrax.RESULTS, metaclass=NamedEnumerationMeta):  # pyright: igno
         "the normal force, the coefficient of the normal multiplier in the contact's "
         "equation is not positive, so the equations have no solution or several "
         "(a slender rod sliding on a floor rougher than its critical coefficient). "
-        "The run stops where it arises: at the start of the slip (`traj.events`: "
-        "the last event before it, none at `t0`) or at the event where the "
-        "coefficient falls through zero. Lower `mu_k`, or model the contact as "
-        "compliant."
+        "The run stops where it arises (at the start of a slip, or where the "
+        "coefficient falls through zero during one), recorded as the last event of "
+        "`traj.events`: its time and contact (`group`), still attached, slipping. "
+        "Lower `mu_k`, or model the contact as compliant."
     )
     invalid_friction = (
         "A `cjax.Coulomb` coefficient from `args` is out of range: the kinetic "

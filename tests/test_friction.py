@@ -360,6 +360,12 @@ def test_painleve_rod_refused_above_the_critical_coefficient():
     q0, qd0 = rod.state(theta, 1.0, args)
     traj = _rod(q0, qd0, args, 0.05)
     assert traj.result == cjax.RESULTS.painleve_paradox
+    # Recorded: the contact (group 0) at t = 0, attached, slipping forwards.
+    events = traj.events
+    assert int(events.count) == 1 and int(events.group[0]) == 0
+    assert float(events.time[0]) == 0.0 and float(events.slip[0]) == 1.0
+    assert bool(events.attached[0]) and not bool(events.impact[0])
+    assert not bool(jnp.any(jnp.isfinite(traj.q[1:])))
     with pytest.raises(Exception, match="Painleve"):
         _run(rod, q0, qd0, args, 0.05, [0.0125, 0.025, 0.05], throw=True)
     q0, qd0 = rod.state(theta, -1.0, args)
