@@ -463,14 +463,19 @@ def initial_contacts(plan: Plan, system, q0, qd0, t0, args, tol):
     return active, slip, ok & jnp.invert(off)
 
 
-def decide_slip(plan: Plan, system, active, slip, which, t, q, qd, args, moving=True):
+def decide_slip(
+    plan: Plan, system, active, slip, which, t, q, qd, args, moving=True, leaving=False
+):
     """The slip state of the attached group `which` (with friction) at `(t, q, qd)`:
     where `moving`, the sign of its slip velocity `v_t` where it is not zero (beyond
     `sqrt(eps) (1 + |qd|)`); else `0` (stick) where the multipliers of the mode that
     sticks lie in the cone, `|lambda_t| <= mu_s N`, and otherwise the direction
     opposite to `lambda_t` (the force that would be needed to stick). At a
     stick-slip event `moving` is false: `v_t` is zero there to the event's
-    tolerance, whatever its size in round-off."""
+    tolerance, whatever its size in round-off. `leaving`: the event where a sticking
+    contact reached the cone's edge, which it leaves (the located point is on the
+    edge to the root find's tolerance, either side): it slips, opposite to
+    `lambda_t`."""
     group = plan.groups(system)[which]
     coulomb = group.friction
     first, _ = plan.rows[which]
@@ -486,7 +491,7 @@ def decide_slip(plan: Plan, system, active, slip, which, t, q, qd, args, moving=
     force = lam[tangent]
     mu_s = jnp.asarray(coulomb.coefficients(args)[0], q.dtype)
     # (`mu_s = inf` never slips, also where `N = 0`.)
-    inside = jnp.isinf(mu_s) | (jnp.abs(force) <= mu_s * normal)
+    inside = jnp.invert(leaving) & (jnp.isinf(mu_s) | (jnp.abs(force) <= mu_s * normal))
     return jnp.where(
         moving, jnp.sign(v_t), jnp.where(inside, 0.0, -jnp.sign(force))
     ).astype(q.dtype)
@@ -1074,13 +1079,14 @@ class _ContactRun:
         velocities put onto the rows that hold where it sticks again (`v_t = 0`
         exactly)."""
         plan, system, args = self.plan, self.system, self.args
+        leaving = transition & (slip[which] == 0)
         slip = jnp.where(freed, slip.at[which].set(0.0), slip)
         new = slip
         decide = transition | landed
         for i in plan._friction_groups():
             i = int(i)
             decided = decide_slip(
-                plan, system, active, slip, i, t, q, qd, args, moving=landed
+                plan, system, active, slip, i, t, q, qd, args, landed, leaving
             )
             new = jnp.where(decide & (which == i), new.at[i].set(decided), new)
         sticks = decide & (new[which] == 0) & (plan.tangents_array()[which] >= 0)
