@@ -155,9 +155,6 @@ class Plan(eqx.Module):
         out = jnp.zeros((self.k,), slip.dtype)
         return out.at[self._tangent_rows()].set(slip[self._friction_groups()])
 
-    def tangents_array(self):
-        return jnp.asarray(self.tangents, int)
-
     def _friction_groups(self) -> np.ndarray:
         return np.asarray([i for i, t in enumerate(self.tangents) if t >= 0], int)
 
@@ -1089,7 +1086,8 @@ class _ContactRun:
                 plan, system, active, slip, i, t, q, qd, args, landed, leaving
             )
             new = jnp.where(decide & (which == i), new.at[i].set(decided), new)
-        sticks = decide & (new[which] == 0) & (plan.tangents_array()[which] >= 0)
+        has = jnp.asarray(plan.tangents)[which] >= 0
+        sticks = decide & (new[which] == 0) & has
         _, qd_held, _, _ = project(self.held(active, new), q, qd, t, args, 0)
         return new, jnp.where(sticks, qd_held, qd)
 

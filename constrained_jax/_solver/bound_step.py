@@ -48,6 +48,7 @@ from .globalization import (
     conjugate_gradient_mv,
     globalized_step,
     least_eigenvalue_mv,
+    levenberg_marquardt_damping,
     tolerances,
 )
 from .minres import MINRES
@@ -342,9 +343,7 @@ def bound_step(solver, residual, z, args):
     system.prepare()
 
     def lm_direction():
-        gram_max = system.gram_diagonal_max(weight)
-        nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(gram_max, 1.0)
-        nu = jnp.maximum(nu, 1e3 * eps * gram_max)
+        nu = levenberg_marquardt_damping(psi, system.gram_diagonal_max(weight), eps)
         nu = jnp.where(finite & jnp.isfinite(nu), nu, 1.0)
         apply = lambda v: system.rmv(weight**2 * system.mv(v))
         steps = system.size if system.dense else min(system.size, 500)

@@ -60,6 +60,15 @@ def least_eigenvalue_mv(matvec, size: int, dtype, bound, num_steps: int = 32):
     return jnp.dot(v, matvec(v))
 
 
+def levenberg_marquardt_damping(psi, gram_max, eps):
+    """The damping `nu` of the Levenberg-Marquardt direction, from the merit `psi`
+    and the largest diagonal entry of the (weighted) Gram matrix `J^T W^2 J`:
+    `min(sqrt(2 psi), 1) max(gram_max, 1)`, at least `1e3 eps gram_max` (for a
+    positive semidefinite Gram matrix its largest entry is on the diagonal)."""
+    nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(gram_max, 1.0)
+    return jnp.maximum(nu, 1e3 * eps * gram_max)
+
+
 def globalized_step(
     z,
     r,

@@ -15,6 +15,7 @@ from .globalization import (
     conjugate_gradient_mv,
     globalized_step,
     least_eigenvalue_mv,
+    levenberg_marquardt_damping,
     tolerances,
 )
 from .kkt_solver import AbstractKKTSolver, KKTResidual
@@ -217,10 +218,7 @@ class SemismoothNewton(AbstractKKTSolver):
         def lm_direction():
             scaled_jac = weight[:, None] * jac
             jtj = scaled_jac.T @ scaled_jac
-            nu = jnp.minimum(jnp.sqrt(2 * psi), 1.0) * jnp.maximum(
-                jnp.max(jnp.abs(jnp.diag(jtj))), 1.0
-            )
-            nu = jnp.maximum(nu, 1e3 * eps * jnp.max(jnp.abs(jtj)))
+            nu = levenberg_marquardt_damping(psi, jnp.max(jnp.diag(jtj)), eps)
             dz = conjugate_gradient(
                 jnp.where(finite, jtj, 0.0), jnp.where(finite, nu, 1.0), -grad_psi
             )
