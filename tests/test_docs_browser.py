@@ -12,7 +12,9 @@ so that a person can look.
 
 Needs Debian's `chromium` (`apt-get install chromium`; `.ci/run` installs it). Where
 it is missing the tests are skipped, except under `CONSTRAINED_JAX_REQUIRE_BROWSER=1`
-(set by `.ci/run`), where they fail. The browser is driven through the DevTools
+(set by `.ci/run`), where they fail. `.ci/run` installs it while the tests run and
+names, in `CONSTRAINED_JAX_BROWSER_INSTALL`, the file that receives apt's exit status
+when the install ends: the tests wait for that file. The browser is driven through the DevTools
 protocol over a pipe (`--remote-debugging-pipe`): no Python package is needed.
 """
 
@@ -41,6 +43,24 @@ ROOT = pathlib.Path(__file__).parents[1]
 SCREENSHOTS = ROOT / "docs-screenshots"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 REQUIRED = os.environ.get("CONSTRAINED_JAX_REQUIRE_BROWSER", "0") == "1"
+INSTALL_STATUS = os.environ.get("CONSTRAINED_JAX_BROWSER_INSTALL")
+
+
+def _wait_for_install(limit_s: float = 1200.0) -> None:
+    """Where an install of Chromium is under way (`.ci/run`), wait for its end."""
+    if not INSTALL_STATUS:
+        return
+    status = pathlib.Path(INSTALL_STATUS)
+    deadline = time.monotonic() + limit_s
+    while not status.exists():
+        if time.monotonic() > deadline:
+            pytest.fail(f"the Chromium install did not end in {limit_s:.0f} s")
+        time.sleep(1.0)
+    code = status.read_text().strip()
+    if code != "0":
+        log = status.with_name("chromium.log")
+        tail = log.read_text()[-3000:] if log.exists() else ""
+        pytest.fail(f"the Chromium install failed (apt exit status {code}):\n{tail}")
 WIDTH, HEIGHT = 1280, 1600
 PAGES = (
     "conventions.html",
@@ -187,6 +207,7 @@ class Browser:
 
 @pytest.fixture(scope="module")
 def browser():
+    _wait_for_install()
     if not os.path.exists(CHROMIUM):
         message = f"no Chromium at {CHROMIUM}: apt-get install chromium"
         if REQUIRED:
