@@ -186,7 +186,8 @@ def test_derivatives_against_finite_differences(n):
     directions = rng.normal(size=(3, n))
 
     def x_of(s):
-        return solve(*(x + s_i * v for x, s_i, v in zip(inputs, s, directions))).x
+        moved = zip(inputs, s, directions, strict=True)
+        return solve(*(x + s_i * v for x, s_i, v in moved)).x
 
     tangents = jax.jacfwd(x_of)(jnp.zeros(3))
     for which in range(3):

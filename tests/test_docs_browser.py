@@ -14,8 +14,9 @@ Needs Debian's `chromium` (`apt-get install chromium`; `.ci/run` installs it). W
 it is missing the tests are skipped, except under `CONSTRAINED_JAX_REQUIRE_BROWSER=1`
 (set by `.ci/run`), where they fail. `.ci/run` installs it while the tests run and
 names, in `CONSTRAINED_JAX_BROWSER_INSTALL`, the file that receives apt's exit status
-when the install ends: the tests wait for that file. The browser is driven through the DevTools
-protocol over a pipe (`--remote-debugging-pipe`): no Python package is needed.
+when the install ends: the tests wait for that file. The browser is driven through
+the DevTools protocol over a pipe (`--remote-debugging-pipe`): no Python package is
+needed.
 """
 
 import base64
@@ -61,6 +62,8 @@ def _wait_for_install(limit_s: float = 1200.0) -> None:
         log = status.with_name("chromium.log")
         tail = log.read_text()[-3000:] if log.exists() else ""
         pytest.fail(f"the Chromium install failed (apt exit status {code}):\n{tail}")
+
+
 WIDTH, HEIGHT = 1280, 1600
 PAGES = (
     "conventions.html",
