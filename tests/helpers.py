@@ -71,11 +71,14 @@ class TraceCounter:
         return self.fn(*args, **kwargs)
 
 
-def run_python(code: str, *, timeout: float, **environ) -> subprocess.CompletedProcess:
+def run_python(
+    code: str, *, timeout: float, cwd=None, **environ
+) -> subprocess.CompletedProcess:
     """`code` run by a new Python process that imports this checkout's
-    `constrained_jax` (its folder first on `PYTHONPATH`), with `environ` added to
-    the environment (a value `None` removes the variable); output captured as text.
-    Raises `subprocess.TimeoutExpired` after `timeout` seconds."""
+    `constrained_jax` (its folder first on `PYTHONPATH`), in the folder `cwd` (by
+    default this one), with `environ` added to the environment (a value `None`
+    removes the variable); output captured as text. Raises
+    `subprocess.TimeoutExpired` after `timeout` seconds."""
     env = dict(os.environ)
     for name, value in environ.items():
         if value is None:
@@ -87,6 +90,7 @@ def run_python(code: str, *, timeout: float, **environ) -> subprocess.CompletedP
     return subprocess.run(
         [sys.executable, "-c", code],
         env=env,
+        cwd=cwd,
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -1,13 +1,17 @@
 """The command line: the tour checks every scene against its closed form and draws
 its pictures; `scene NAME --param` runs one scene; failures give exit status 1.
 
-One tour runs per test module (compilation dominates its time); the `scene` tests
-after it reuse its compiled programs (same process)."""
+The tour runs once per test module, as users run it: in a fresh process with no
+`XLA_FLAGS` (so with the code generator and the diffrax patch the command line turns
+on), followed in that process by the `scene` commands that the tests below check
+(they reuse its compiled programs). The tests that patch the command line's
+internals call `main` here, on the smallest scene."""
 
 import contextlib
 import importlib.metadata
 import inspect
 import io
+import json
 import math
 import pathlib
 import re
@@ -52,11 +56,72 @@ def _main(argv):
     return code, out.getvalue()
 
 
+# The commands the fresh process runs after the tour, by name.
+_SCENE_COMMANDS = {
+    "cylinder_volume(b=2, l=3)": [
+        "scene", "cylinder_volume", "--b", "2", "--l", "3", "--no-plots"
+    ],
+    "two_cylinders(theta0=0.3, alpha=1)": [
+        "scene", "two_cylinders", "--theta0", "0.3", "--alpha", "1", "--out", "{out}"
+    ],
+    "pendulum(theta0=0.5, periods=2)": [
+        "scene", "pendulum", "--theta0", "0.5", "--periods", "2", "--no-plots"
+    ],
+    "catenary(length=2, yr=0.5)": [
+        "scene", "catenary", "--length", "2", "--yr", "0.5", "--no-plots"
+    ],
+    "sphere_geodesic(radius=2)": [
+        "scene", "sphere_geodesic", "--radius", "2", "--no-plots"
+    ],
+}  # fmt: skip
+
+_DRIVER = """
+import contextlib, io, json, os
+from constrained_jax.__main__ import main
+results = {}
+for name, argv in COMMANDS.items():
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(argv)
+    results[name] = [code, out.getvalue()]
+results["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "")
+with open("results.json", "w") as f:
+    json.dump(results, f)
+"""
+
+
 @pytest.fixture(scope="module")
-def tour(tmp_path_factory):
-    out_dir = tmp_path_factory.mktemp("tour")
-    code, out = _main(["tour", "--out", str(out_dir)])
-    return code, out, out_dir
+def cli_runs(tmp_path_factory):
+    """`(results, folder)`: the tour (`--out folder/tour`) and `_SCENE_COMMANDS`
+    (`--out folder/NAME`) run by one fresh process in `folder`, each as `[exit status,
+    output]` by name, and its final `XLA_FLAGS`."""
+    folder = tmp_path_factory.mktemp("cli")
+    commands = {"tour": ["tour", "--out", str(folder / "tour")]}
+    for name, argv in _SCENE_COMMANDS.items():
+        commands[name] = [a.replace("{out}", str(folder / name)) for a in argv]
+    run = run_python(
+        f"COMMANDS = {commands!r}\n{_DRIVER}", timeout=900, cwd=folder, XLA_FLAGS=None
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    return json.loads((folder / "results.json").read_text()), folder
+
+
+@pytest.fixture(scope="module")
+def tour(cli_runs):
+    results, folder = cli_runs
+    code, out = results["tour"]
+    return code, out, folder / "tour"
+
+
+@pytest.fixture(autouse=True)
+def _restore_diffrax_patch():
+    """`main` turns on the diffrax patch for the rest of its process: the tests that
+    call it here leave the worker as they found it."""
+    from constrained_jax import _diffrax_integrate
+
+    before = _diffrax_integrate.diffrax_patch_on()
+    yield
+    _diffrax_integrate.use_diffrax_patch(before)
 
 
 def _rows(out):
@@ -115,7 +180,7 @@ def test_tour_reads_on_a_newcomer_screen(tour):
     )
 
 
-def test_rows_are_printed_as_each_scene_finishes(tour, monkeypatch):
+def test_rows_are_printed_as_each_scene_finishes(monkeypatch):
     """A job's rows are printed as soon as its program has compiled, before the
     next program's first call ends (one compilation at a time here)."""
     first_call = cli._first_call
@@ -185,51 +250,36 @@ def test_tour_writes_its_pictures(tour):
     assert sorted(p.name for p in out_dir.iterdir()) == sorted(PICTURES)
 
 
-def test_one_scene_with_parameters(tour, tmp_path):
-    code, out = _main(
-        ["scene", "cylinder_volume", "--b", "2", "--l", "3", "--no-plots"]
-    )
+def test_one_scene_with_parameters(cli_runs):
+    results, folder = cli_runs
+    label = "cylinder_volume(b=2, l=3)"
+    code, out = results[label]
     assert code == 0, out
     rows = _rows(out)
     # a = 2l/(5 pi) with l = 3.
-    assert rows[("cylinder_volume(b=2, l=3)", "radius a")][1] == pytest.approx(
-        6 / (5 * math.pi)
-    )
-    assert not any(tmp_path.iterdir())
+    assert rows[(label, "radius a")][1] == pytest.approx(6 / (5 * math.pi))
+    # `--no-plots`: not even the default folder for pictures.
+    assert not (folder / cli._DEFAULT_OUT).exists()
 
-    code, out = _main(
-        [
-            "scene",
-            "two_cylinders",
-            "--theta0",
-            "0.3",
-            "--alpha",
-            "1",
-            "--out",
-            str(tmp_path),
-        ]
-    )
+    label = "two_cylinders(theta0=0.3, alpha=1)"
+    code, out = results[label]
     assert code == 0, out
     rows = _rows(out)
-    label = "two_cylinders(theta0=0.3, alpha=1)"
     theta_star = math.acos(2 * math.cos(0.3) / 4)
     assert rows[(label, "detachment angle")][1] == pytest.approx(theta_star)
-    assert (tmp_path / "two_cylinders_normal_force.png").stat().st_size > 20_000
+    assert (folder / label / "two_cylinders_normal_force.png").stat().st_size > 20_000
 
 
 @pytest.mark.parametrize(
-    "argv, label",
+    "label",
     [
-        (
-            ["pendulum", "--theta0", "0.5", "--periods", "2"],
-            "pendulum(theta0=0.5, periods=2)",
-        ),
-        (["catenary", "--length", "2", "--yr", "0.5"], "catenary(length=2, yr=0.5)"),
-        (["sphere_geodesic", "--radius", "2"], "sphere_geodesic(radius=2)"),
+        "pendulum(theta0=0.5, periods=2)",
+        "catenary(length=2, yr=0.5)",
+        "sphere_geodesic(radius=2)",
     ],
 )
-def test_more_scenes_with_parameters(tour, argv, label):
-    code, out = _main(["scene", *argv, "--no-plots"])
+def test_more_scenes_with_parameters(cli_runs, label):
+    code, out = cli_runs[0][label]
     assert code == 0, out
     assert {scene for scene, _ in _rows(out)} == {label}
 
@@ -275,7 +325,7 @@ def test_impossible_parameters_say_why():
     assert "omega^2 > g/rho" in str(info.value.code)
 
 
-def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
+def test_a_failing_check_gives_exit_status_1(monkeypatch):
     from constrained_jax.scenes import cylinder_volume
 
     closed_form = cylinder_volume.closed_form
@@ -293,31 +343,25 @@ def test_a_failing_check_gives_exit_status_1(tour, monkeypatch):
     assert "radius a" in failed
 
 
-def test_the_older_code_generator_by_default():
+def test_the_older_code_generator_by_default(tour, cli_runs):
     """A fresh `constrained-jax` process compiles with XLA:CPU's older code generator
     and small loops as one function each (`cjax.settings.use_fast_compilation`,
-    `cjax.settings.use_loop_kernels`: the flags in its `XLA_FLAGS`) and says so."""
-    run = run_python(
-        "import sys; from constrained_jax.__main__ import main; "
-        "code = main(['scene', 'cylinder_volume', '--no-plots', "
-        "'--no-compilation-cache']); "
-        "import os; print('XLA_FLAGS=' + os.environ.get('XLA_FLAGS', '')); "
-        "sys.exit(code)",
-        timeout=600,
-        XLA_FLAGS=None,
-    )
-    assert run.returncode == 0, run.stdout + run.stderr
+    `cjax.settings.use_loop_kernels`: the flags in its `XLA_FLAGS`), with the diffrax
+    patch, and says so."""
+    _, out, _ = tour
+    text = " ".join(out.split())
     if importlib.metadata.version("jaxlib") in _code_generator._KNOWN_JAXLIB:
         assert (
             "compiled with XLA:CPU's older code generator and loops up to "
-            "1048576 bytes as one function" in " ".join(run.stdout.split())
+            "1048576 bytes as one function" in text
         )
-        assert (
-            "XLA_FLAGS=--xla_cpu_use_fusion_emitters=false --xla_backend_extra_options"
-            "=xla_cpu_small_while_loop_byte_threshold=1048576" in run.stdout
+        assert cli_runs[0]["XLA_FLAGS"] == (
+            "--xla_cpu_use_fusion_emitters=false --xla_backend_extra_options"
+            "=xla_cpu_small_while_loop_byte_threshold=1048576"
         )
     else:
-        assert "compiled with XLA's defaults" in run.stdout
+        assert "compiled with XLA's defaults" in text
+    assert "diffrax patched (--diffrax-defaults: unchanged)" in text
 
 
 def test_xla_defaults_switch(monkeypatch):
@@ -380,7 +424,7 @@ def test_the_library_does_not_import_the_tour():
 
 
 def test_without_matplotlib_the_checks_run_and_say_how_to_install(
-    tour, tmp_path, monkeypatch
+    tmp_path, monkeypatch
 ):
     monkeypatch.setattr(cli, "_have_matplotlib", lambda: False)
     code, out = _main(["scene", "cylinder_volume", "--out", str(tmp_path)])
