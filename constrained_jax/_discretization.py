@@ -488,7 +488,10 @@ class Chebyshev(AbstractDiscretization):
         )
 
     def make_linear_solver(self, num_components, num_holonomic, num_integral):
-        return EquilibratedDenseLU()
+        # LAPACK's LU at every size: on a functional's KKT matrix the unrolled
+        # elimination of small sizes compiles markedly slower and solves no faster
+        # (`benchmarks/functionals.py`).
+        return EquilibratedDenseLU(unroll_max=0)
 
     def _coefficient_matrix(self) -> Array:
         """`C` with `c = C @ values`: the Chebyshev coefficients of the interpolant

@@ -5,9 +5,9 @@ import os
 
 # The suite runs the configuration `import constrained_jax` gives: XLA's defaults.
 # XLA's default code generator is said out loud (where the flag is known: XLA aborts
-# the process on a flag it does not know), so that the tour run in-process
-# (`test_cli.py`), whose `main` turns on the older code generator unless the user's
-# `XLA_FLAGS` choose, leaves this worker on the default.
+# the process on a flag it does not know), so that the command line's `main` called
+# in the worker (`test_cli.py`), which turns on the older code generator unless the
+# user's `XLA_FLAGS` choose, leaves this worker on the default.
 # `CONSTRAINED_JAX_TEST_FAST_COMPILATION=1` runs the suite with the older code
 # generator instead (`--xla_cpu_use_fusion_emitters=false`: faster compilation, the
 # same results to round-off), for quick local iterations only.
@@ -25,7 +25,7 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 
-# The tests never write JAX's persistent compilation cache: the tour run in-process
+# The tests never write JAX's persistent compilation cache: the command line
 # (`test_cli.py`) and the notebooks' kernels call `cjax.enable_compilation_cache()`,
 # which would turn it on for the rest of the worker and fill the user's
 # `~/.cache/constrained_jax`. `test_compilation_cache.py` turns it on where it is the
@@ -73,8 +73,8 @@ def diffrax_patch():
     """`set(on)`: the library's opt-in diffrax patch on or off
     (`cjax.settings.use_diffrax_patch`), with JAX's caches cleared so that the
     programs traced next see it (a cached trace keeps what it was traced with). The
-    worker's setting is restored afterwards (the in-process tour of `test_cli.py`
-    turns the patch on)."""
+    worker's setting is restored afterwards (the command line's `main` turns the
+    patch on)."""
     from constrained_jax import _diffrax_integrate
 
     before = _diffrax_integrate.diffrax_patch_on()

@@ -38,8 +38,8 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
         kernel_name="python3",
         resources={"metadata": {"path": str(tmp_path)}},
     )
-    # The kernel compiles with XLA's default code generator (the one users run), not
-    # the faster-compiling one the rest of the suite uses (`conftest.py`).
+    # The kernel gets the user's `XLA_FLAGS` (none in CI: XLA's defaults, what a
+    # notebook user runs), not the flags `conftest.py` adds for this worker.
     env = dict(os.environ)
     env["XLA_FLAGS"] = USER_XLA_FLAGS
     client.execute(env=env)

@@ -35,9 +35,17 @@ class EquilibratedDenseLU(lx.AbstractLinearSolver):
     `DenseLU` (`10 m eps max|A|`) mean "numerically singular" rather than "badly
     scaled". Singular matrices are reported as `lineax.RESULTS.singular`.
 
+    **Arguments:**
+
+    - `unroll_max`: the largest size factored by the unrolled elimination of
+        `DenseLU` (fused straight-line code, the faster one for batches of small
+        systems under `jax.vmap`); larger ones by LAPACK's LU, which compiles faster.
+
     **Reference:** D. Ruiz, *A scaling algorithm to equilibrate both rows and columns
     norms in matrices*, RAL-TR-2001-034 (2001).
     """
+
+    unroll_max: int = 12
 
     def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
         del options
@@ -45,12 +53,12 @@ class EquilibratedDenseLU(lx.AbstractLinearSolver):
             raise ValueError("`EquilibratedDenseLU` needs a square operator.")
         matrix = operator.as_matrix()
         scaled, row, col = _equilibrate(matrix)
-        return matrix, scaled, row, col, dense_factor(scaled, unroll_max=12)
+        return matrix, scaled, row, col, dense_factor(scaled, self.unroll_max)
 
     def compute(self, state, vector, options: dict[str, Any]):
         del options
         _, _, row, col, factors = state
-        x = dense_solve(factors, vector / row, unroll_max=12) / col
+        x = dense_solve(factors, vector / row, self.unroll_max) / col
         singular = factors[2]
         result = lx.RESULTS.where(singular, lx.RESULTS.singular, lx.RESULTS.successful)
         return x, result, {}
@@ -63,7 +71,7 @@ class EquilibratedDenseLU(lx.AbstractLinearSolver):
             scaled_t,
             col,
             row,
-            dense_factor(scaled_t, unroll_max=12),
+            dense_factor(scaled_t, self.unroll_max),
         ), options
 
     def conj(self, state, options: dict[str, Any]):
