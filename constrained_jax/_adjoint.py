@@ -22,7 +22,9 @@ otherwise. Why (`benchmarks/gradients.py` measures it):
     is its product with the cotangent, and no checkpoints are stored. Forward mode is
     used up to `p = 16` and `p` times the size of the state up to 256 (a large
     system's tangents cost in proportion to their number); above that
-    `diffrax.RecursiveCheckpointAdjoint()`.
+    `diffrax.RecursiveCheckpointAdjoint()`, whose forward pass is the plain solve
+    and whose backward pass runs the solve again under `jax.vjp` (the residuals keep
+    one structure whichever inputs are perturbed: see `_loop_fwd`).
 - `diffrax.BacksolveAdjoint` (the continuous adjoint) cannot be used: `simulate`
     saves through `diffrax.SaveAt(subs=...)` and stops at events (the release),
     neither of which it supports; nor are its gradients those of the discrete solve.
@@ -55,8 +57,9 @@ class ForwardJacobianAdjoint(diffrax.AbstractAdjoint):
     `diffrax.ForwardMode()` with their `p` unit tangents batched (the Jacobian of the
     final state, `p` tangents of it, is the only residual) and the backward pass
     contracts it with the cotangent. More: `fallback` (by default
-    `diffrax.RecursiveCheckpointAdjoint()`). Without differentiation it is the plain
-    solve.
+    `diffrax.RecursiveCheckpointAdjoint()`), the plain solve forward and the
+    fallback's solve again, differentiated, backward. Without differentiation it is
+    the plain solve.
 
     **Arguments:**
 
@@ -208,9 +211,21 @@ def _forward_mode(perturbed, vjp_arg, max_tangents: int) -> bool:
 
 @_loop.def_fwd
 def _loop_fwd(perturbed, vjp_arg, max_tangents):
+    # The residuals have the same structure whichever inputs are perturbed: the
+    # Jacobian (a leading axis of tangents on every leaf of the final state), with
+    # no tangents (an empty axis) for the fallback, which recomputes in the backward
+    # pass. JAX memoizes the traced forward rule per pattern of perturbed inputs,
+    # but keeps the residuals' structure of the pattern traced last: a structure
+    # that changed with the pattern (the fallback's `jax.vjp` closure against the
+    # forward mode's Jacobian, or two closures) would be unflattened wrongly when a
+    # memoized pattern is used again (a `lax.scan` whose carry becomes perturbed
+    # after its first iteration traces two patterns; the next transformation of the
+    # same cached program then fails with `StopIteration` in JAX's
+    # `process_custom_vjp_call`, or reads the residuals of the other pattern).
     if not _forward_mode(perturbed, vjp_arg, max_tangents):
-        solve, inputs, _ = _differentiated(perturbed, vjp_arg, 1)
-        return jax.vjp(solve, inputs)
+        forward, _, dynamic = vjp_arg
+        out = forward(dynamic)
+        return out, jtu.tree_map(_no_tangents, out)
     solve, inputs, _ = _differentiated(perturbed, vjp_arg, 0)
     count = sum(int(np.size(x)) for x in inputs)
     ends = np.cumsum([int(np.size(x)) for x in inputs])
@@ -226,17 +241,27 @@ def _loop_fwd(perturbed, vjp_arg, max_tangents):
     return jax.vmap(column, out_axes=(None, 0))(jnp.arange(count))
 
 
+def _no_tangents(x):
+    """The Jacobian leaf of `x` with no tangents (the fallback's residual)."""
+    if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+        return jnp.zeros((0, *jnp.shape(x)), jnp.result_type(x))
+    return np.zeros((0, *jnp.shape(x)), jax.dtypes.float0)
+
+
 @_loop.def_bwd
 def _loop_bwd(residuals, grad_out, perturbed, vjp_arg, max_tangents):
     forward = _forward_mode(perturbed, vjp_arg, max_tangents)
     _, inputs, chosen = _differentiated(perturbed, vjp_arg, 0 if forward else 1)
     if forward:
-        # The Jacobian (a leading axis of tangents on every leaf of the final state)
-        # against the cotangent, with `None` for the leaves not differentiated.
+        # The Jacobian against the cotangent, with `None` for the leaves not
+        # differentiated. An entry whose cotangent is zero adds zero, also where its
+        # Jacobian is not finite: under `jax.vmap` a lane whose result is discarded
+        # (a contact run that is over while others go on) runs the solve anyway,
+        # from a state that need not make sense, and receives a zero cotangent.
         def contract(g, j):
             if g is None or j.dtype == jax.dtypes.float0:
                 return None
-            return jnp.tensordot(j, g, axes=g.ndim)
+            return jnp.tensordot(jnp.where(g != 0, j, 0), g, axes=g.ndim)
 
         terms = jtu.tree_leaves(
             jtu.tree_map(contract, grad_out, residuals, is_leaf=_none)
@@ -248,24 +273,40 @@ def _loop_bwd(residuals, grad_out, perturbed, vjp_arg, max_tangents):
             for x, end in zip(inputs, ends, strict=True)
         ]
     else:
-        solve, _, _ = _differentiated(perturbed, vjp_arg, 1)
-        shapes = jax.eval_shape(solve, inputs)
-        (grads,) = residuals(jtu.tree_map(_cotangent, grad_out, shapes, is_leaf=_none))
+        grads = _fallback_vjp(perturbed, vjp_arg, inputs, grad_out)
     grads = iter(grads)
     return jtu.tree_map(lambda c: next(grads) if c else None, tuple(chosen))
 
 
+def _fallback_vjp(perturbed, vjp_arg, inputs, grad_out):
+    """The fallback's reverse pass: its solve again, differentiated (`jax.vjp`) with
+    respect to its perturbed `inputs`, only through the leaves of the final state
+    that have a cotangent (the others, `None`, are left out of the program, as they
+    are from diffrax's own reverse pass: a zero cotangent through a derivative that
+    is not finite, on a lane of a `jax.vmap` batch whose result is discarded, would
+    be NaN)."""
+    solve, _, _ = _differentiated(perturbed, vjp_arg, 1)
+    cotangents = jtu.tree_leaves(grad_out)
+    if not cotangents:
+        return [jnp.zeros_like(x) for x in inputs]
+
+    def used(values):
+        kept = []
+        jtu.tree_map(
+            lambda g, y: None if g is None else kept.append(y),
+            grad_out,
+            solve(values),
+            is_leaf=_none,
+        )
+        return kept
+
+    _, vjp = jax.vjp(used, inputs)
+    (grads,) = vjp(cotangents)
+    return grads
+
+
 def _none(x) -> bool:
     return x is None
-
-
-def _cotangent(g, shape):
-    """The cotangent `jax.vjp` takes for an output leaf: `g`, or a zero if `None`."""
-    if shape is None:
-        return None
-    if not jnp.issubdtype(shape.dtype, jnp.inexact):
-        return np.zeros(shape.shape, jax.dtypes.float0)
-    return jnp.zeros(shape.shape, shape.dtype) if g is None else g
 
 
 def default_adjoint(

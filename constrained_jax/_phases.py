@@ -26,6 +26,7 @@ from typing import Any
 
 import diffrax
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -684,7 +685,20 @@ def run_contacts(
         return run.finish(c, t0)
 
     def body(c, _):
-        return jax.lax.cond(c["done"], lambda c_: c_, run.phase, c), None
+        # Skipped once every lane of a `jax.vmap` batch is over (`unvmap_all`: the
+        # predicate is never batched, so this stays a `lax.cond`); the lanes over
+        # before the others run the phase over an empty span (`phase`), discarded
+        # by `jnp.where`. A batched predicate would make the `lax.cond` a select,
+        # and reverse mode inside `jax.vmap` (`vmap(grad)`) would then run the
+        # phase's backward pass on the lanes that skipped it with the residuals of
+        # the skipping branch, zeros: NaN in the implicit linear solves (Lineax's
+        # non-finite input error), and a checkpointed loop whose step count differs
+        # across the batch (`equinox.internal`'s "Nonconstant batch").
+        def step(c_):
+            new = run.phase(c_)
+            return jax.tree.map(lambda x, y: jnp.where(c_["done"], x, y), c_, new)
+
+        return jax.lax.cond(eqxi.unvmap_all(c["done"]), lambda c_: c_, step, c), None
 
     c, _ = jax.lax.scan(body, carry, None, length=plan.num_phases)
     return run.finish(c, t0)
@@ -846,8 +860,10 @@ class _ContactRun:
             end, result, saved, stats = integrate(None)
         else:
             # Where it pulls, the solve runs over an empty span and is discarded:
-            # cheaper than a `lax.cond` around a solve.
-            run = integrate(None, jnp.where(pulls, t_start + self.tiny, self.t1))
+            # cheaper than a `lax.cond` around a solve. So does a run that is over
+            # (a lane of a `jax.vmap` batch waiting for the others: `run_contacts`).
+            empty = pulls | c["done"]
+            run = integrate(None, jnp.where(empty, t_start + self.tiny, self.t1))
             released = released_at_start(None)
             result = RESULTS.where(pulls, released[1], run[1])
             end, saved, stats = jax.tree.map(
