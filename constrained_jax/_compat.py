@@ -13,9 +13,11 @@ maybe slower or less informative, on a version it was not written for:
 - `CALLBACK_LOGGER`: the name of the logger under which JAX reports an exception
     raised in a host callback. Fallback: a logger nobody writes to (the messages are
     logged).
-- `while_loop`, `buffer_at_set`: `equinox.internal`'s checkpointed loop with
-    write-only buffers, diffrax's own loop. Any equinox that the installed diffrax
-    runs with has them (diffrax imports them), so they need no guard of their own.
+- `while_loop`, `buffer_at_set`, `unvmap_all`: `equinox.internal`'s checkpointed
+    loop with write-only buffers, diffrax's own loop, and the predicate that is true
+    when it holds in every lane of a `jax.vmap` batch (never batched itself, so a
+    `lax.cond` on it stays a branch). Any equinox that the installed diffrax runs
+    with has them (diffrax uses them), so they need no guard of their own.
 - `lineax_internal`: `lineax.internal`'s flattening of operator structures, for the
     library's own linear solvers (`DenseLU`, `MINRES`), as lineax's solvers use it.
     diffrax and optimistix import `lineax.internal` too: no guard of its own.
@@ -108,10 +110,12 @@ def _quiet(log: logging.Logger):
 
 
 # --------------------------------------------------------------------------------------
-# equinox: diffrax's loop primitives (a checkpointed `while` with write-only buffers).
+# equinox: diffrax's loop primitives (a checkpointed `while` with write-only buffers,
+# and a predicate over the lanes of a batch).
 
 while_loop = eqxi.while_loop
 buffer_at_set = eqxi.buffer_at_set
+unvmap_all = eqxi.unvmap_all
 
 
 # --------------------------------------------------------------------------------------

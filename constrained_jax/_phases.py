@@ -26,12 +26,12 @@ from typing import Any
 
 import diffrax
 import equinox as eqx
-import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._compat import unvmap_all
 from ._constraints import Unilateral
 from ._contact import back_to_contact, Events, impact
 from ._diffrax_integrate import diffeqsolve
@@ -698,7 +698,7 @@ def run_contacts(
             new = run.phase(c_)
             return jax.tree.map(lambda x, y: jnp.where(c_["done"], x, y), c_, new)
 
-        return jax.lax.cond(eqxi.unvmap_all(c["done"]), lambda c_: c_, step, c), None
+        return jax.lax.cond(unvmap_all(c["done"]), lambda c_: c_, step, c), None
 
     c, _ = jax.lax.scan(body, carry, None, length=plan.num_phases)
     return run.finish(c, t0)
