@@ -103,6 +103,7 @@ _LONG_FIRST = (
     "test_kkt_derivative.py",
     "test_release.py",
     "test_gradients.py",
+    "test_vmap_gradients.py",
 )
 
 
