@@ -489,8 +489,8 @@ class Chebyshev(AbstractDiscretization):
 
     def make_linear_solver(self, num_components, num_holonomic, num_integral):
         # LAPACK's LU at every size: on a functional's KKT matrix the unrolled
-        # elimination of small sizes compiles markedly slower and solves no faster
-        # (`benchmarks/functionals.py`).
+        # elimination of small sizes compiles markedly slower, and solves no faster
+        # one at a time (only a `jax.vmap` batch of the smallest sizes gains a little).
         return EquilibratedDenseLU(unroll_max=0)
 
     def _coefficient_matrix(self) -> Array:

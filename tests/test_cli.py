@@ -114,14 +114,9 @@ def tour(cli_runs):
 
 
 @pytest.fixture(autouse=True)
-def _restore_diffrax_patch():
+def _restore_diffrax_patch(diffrax_patch):
     """`main` turns on the diffrax patch for the rest of its process: the tests that
-    call it here leave the worker as they found it."""
-    from constrained_jax import _diffrax_integrate
-
-    before = _diffrax_integrate.diffrax_patch_on()
-    yield
-    _diffrax_integrate.use_diffrax_patch(before)
+    call it here leave the worker as they found it (`conftest.diffrax_patch`)."""
 
 
 def _rows(out):
