@@ -644,27 +644,36 @@ def _feasible_start(full_args, offset, base=None):
     )
     starts = amplitude * jnp.stack([first, -first, generic, -generic]).reshape(4, -1)
 
-    def from_modes():
-        u, feasible, value, infeasibility = jax.vmap(search)(starts)
-        value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
-        infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
-        best = jnp.where(
-            jnp.any(feasible[:2]),
-            jnp.argmin(value[:2]),
-            jnp.where(
-                jnp.any(feasible[2:]),
-                2 + jnp.argmin(value[2:]),
-                jnp.argmin(infeasibility),
-            ),
+    if base is not None:
+        # The base itself first (`u = 0`); the finite amplitudes only where that
+        # fails. All five searches run in one batch: one copy of the search in the
+        # compiled program (each copy costs about a second of compilation).
+        starts = jnp.concatenate([jnp.zeros_like(starts[:1]), starts])
+    u, feasible, value, infeasibility = jax.vmap(search)(starts)
+    if base is not None:
+        itself = feasible[0]
+        u0 = u[0]
+        u, feasible, value, infeasibility = (
+            u[1:],
+            feasible[1:],
+            value[1:],
+            infeasibility[1:],
         )
-        return u[best], feasible[best]
-
-    if base is None:
-        u, feasible = from_modes()
-    else:
-        # The base itself first; the finite amplitudes only where that fails.
-        u0, feasible0, _, _ = search(jnp.zeros_like(starts[0]))
-        u, feasible = jax.lax.cond(feasible0, lambda: (u0, feasible0), from_modes)
+    value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
+    infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
+    best = jnp.where(
+        jnp.any(feasible[:2]),
+        jnp.argmin(value[:2]),
+        jnp.where(
+            jnp.any(feasible[2:]),
+            2 + jnp.argmin(value[2:]),
+            jnp.argmin(infeasibility),
+        ),
+    )
+    u, feasible = u[best], feasible[best]
+    if base is not None:
+        u = jnp.where(itself, u0, u)
+        feasible = itself | feasible
     return modes.values(u), feasible
 
 
@@ -685,66 +694,105 @@ def _start_multipliers(x_flat, full_args, num_holonomic_rows):
 
 
 class _Continuation(eqx.Module):
-    """Newton from `z0`; if that fails from a start moved onto the integral
-    constraints, continuation in the integral constraint values (a `strategy` of
-    `kkt_solve`).
+    """The start on the integral constraints, Newton from it, and if that fails,
+    continuation in the integral constraint values (a `strategy` of `kkt_solve`).
 
-    The continuation (with integral constraints, from the default start or from the
-    user's curve moved onto them) solves the problem with the targets
+    The start (`start`) is the default start, or the user's curve `base` moved onto
+    the constraints (see `_feasible_start`), with the least-squares multipliers. The
+    continuation solves the problem with the targets
     `C_j(t) = N_j[line] + t (C_j - N_j[line])`, between the values at the straight
     line (`t = 0`) and the requested ones (`t = 1`): first at some `t` from the start
-    for those targets (the default start, or the user's curve `base` moved onto
-    them, see `_feasible_start`), then with `t` growing by a factor `q` from each
-    solution to the next (`q = 2`, square rooted after a failure), until `t = 1`.
-    For a rope that sags deeply this follows the branch from a shallow sag, where
-    Newton's method converges from the start, down to the requested length.
+    for those targets, then with `t` growing by a factor `q` from each solution to
+    the next (`q = 2`, square rooted after a failure), until `t = 1`. For a rope that
+    sags deeply this follows the branch from a shallow sag, where Newton's method
+    converges from the start, down to the requested length.
+
+    The start at `t = 1` and the continuation's fresh starts are one call in the
+    compiled program (each copy of the start's search and multipliers costs about a
+    second of compilation): the first pass of the loop builds the start and solves
+    from it. What the solve needs to know about the start is returned in `stats`
+    under `_start_*` keys (popped by `_solve_functional`).
     """
 
     r_line: Array
     num_holonomic_rows: int = eqx.field(static=True)
-    start_found: Array
-    deep: Array
+    # The line is a degenerate start (a length equal to the chord).
+    degenerate: Array
+    # `args` and the functional's arrays are finite.
+    inputs_finite: Array
+    # The user's curve with the boundary values at its ends (finite), or None.
     base: Array | None
+    base_finite: Array
+    # The user's curve as given (used as it is where it cannot be moved), or None.
+    user_guess: Array | None
+    # The curve the sag of the start is measured from, and the interval's width.
+    reference: Array
+    width: Array
+
+    def start(self, args, t, first):
+        """The start for the targets `C_j(t)`: `(z, found, values, finite)`, the
+        unknowns and multipliers, whether it satisfies the integral constraints,
+        the nodal values `(N, n)` and whether they are finite. At the first pass a
+        start that is not usable is zeros (no step is taken)."""
+        args = _stop_gradient(args)
+        values, found = _feasible_start(args, -(1 - t) * self.r_line, self.base)
+        # A start that is not finite stays as it is: `RESULTS.invalid_input`.
+        found = found & self.base_finite
+        if self.user_guess is not None:
+            values = jnp.where(found | jnp.invert(first), values, self.user_guess)
+        x = values[1:-1].reshape(-1)
+        finite = jnp.all(jnp.isfinite(x))
+        x = jnp.where(first & jnp.invert(finite & self.inputs_finite), 0.0, x)
+        lam = _start_multipliers(x, args, self.num_holonomic_rows)
+        return jnp.concatenate([x, lam]), found, values, finite
 
     def __call__(self, solve, residual, z0, args, start_ok):
         r_line, num_holonomic_rows = self.r_line, self.num_holonomic_rows
-        start_found = self.start_found
-        # A deep start (moved onto the constraints by more than twice the interval)
-        # goes to the continuation at once: Newton from it may converge to a
-        # spurious discrete extremal.
-        direct_ok = start_ok & jnp.invert(self.deep & start_found)
-        skipped = jnp.invert(direct_ok) & start_ok
         dtype = z0.dtype
         pad = jnp.zeros((z0.shape[0] - r_line.shape[0],), dtype)
-
-        def fresh_start(t):
-            offset = -(1 - t) * r_line
-            values, _ = _feasible_start(args, offset, self.base)
-            x = values[1:-1].reshape(-1)
-            lam = _start_multipliers(x, args, num_holonomic_rows)
-            return jnp.concatenate([x, lam])
+        num_unknowns = z0.shape[0] - r_line.shape[0] - num_holonomic_rows
+        shape = self.reference.shape
 
         # One Newton solve in the program (it dominates the compilation): the first
-        # pass of the loop is the direct solve from `z0` at `t = 1`, the later ones
-        # the continuation's trials.
+        # pass of the loop is the direct solve from the start at `t = 1`, the later
+        # ones the continuation's trials.
         def cond(carry):
             stage, q, finished = carry[3], carry[2], carry[4]
             return jnp.invert(finished) & (stage <= _CONTINUATION_STAGES) & (q > 1.01)
 
         def body(carry):
-            t_done, t_try, q, stage, _, z_done, steps, direct = carry
+            t_done, t_try, q, stage, _, z_done, steps, direct, facts = carry
             first = stage == 0
             have = t_done > 0
             t = jnp.where(first, 1.0, t_try).astype(dtype)
-            z_start = jax.lax.cond(
-                first,
-                lambda: z0,
-                lambda: jax.lax.cond(have, lambda: z_done, lambda: fresh_start(t)),
+            z_start, found, values, finite = jax.lax.cond(
+                first | jnp.invert(have),
+                lambda: self.start(args, t, first),
+                lambda: (
+                    z_done,
+                    jnp.array(True),
+                    jnp.zeros(shape, dtype),
+                    jnp.array(True),
+                ),
             )
+            # What the first pass learns about the start, kept for the later ones.
+            usable = start_ok & finite
+            continue_ok = found & jnp.invert(self.degenerate & usable)
+            # A deep start (moved onto the constraints by more than twice the
+            # interval) goes to the continuation at once: Newton from it may
+            # converge to a spurious discrete extremal.
+            deep = jnp.max(jnp.abs(values - self.reference)) > 2 * self.width
+            direct_ok = usable & jnp.invert(deep & continue_ok)
+            skipped = jnp.invert(direct_ok) & usable
+            new_facts = (usable, continue_ok, skipped, found, finite, z_start)
+            facts = jax.tree.map(
+                lambda new, old: jnp.where(first, new, old), new_facts, facts
+            )
+            usable, continue_ok, skipped = facts[:3]
             offset = -(1 - t) * r_line
             shifted = lambda z_, a: residual(z_, a) + jnp.concatenate([pad, offset])
             z_t, result_t, stats_t = solve(
-                shifted, z_start, jnp.where(first, direct_ok, start_ok)
+                shifted, z_start, jnp.where(first, direct_ok, usable)
             )
             ok = result_t == RESULTS.successful
             steps = steps + stats_t["num_steps"]
@@ -758,8 +806,8 @@ class _Continuation(eqx.Module):
             need = (
                 (skipped | (result_t != RESULTS.successful))
                 & (result_t != RESULTS.nonlinear_max_steps_reached)
-                & start_ok
-                & start_found
+                & usable
+                & continue_ok
             )
             # After a failure: from the last solution, a smaller factor; before the
             # first solution, a smaller t.
@@ -780,26 +828,21 @@ class _Continuation(eqx.Module):
                 z_done_new,
                 steps,
                 direct,
+                facts,
             )
 
         one = jnp.ones((), dtype)
         # The direct solve's outputs, zeros until the first pass writes them.
-        shapes = jax.eval_shape(lambda: solve(residual, z0, direct_ok))
+        shapes = jax.eval_shape(lambda: solve(residual, z0, start_ok))
         direct = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
         steps = jnp.zeros((), shapes[2]["num_steps"].dtype)
-        init = (
-            0 * one,
-            one,
-            2 * one,
-            jnp.array(0),
-            jnp.array(False),
-            z0,
-            steps,
-            direct,
-        )
-        t_done, _, _, stage, finished, z_c, steps, direct = jax.lax.while_loop(
+        false = jnp.array(False)
+        facts = (false, false, false, false, false, z0)
+        init = (0 * one, one, 2 * one, jnp.array(0), false, z0, steps, direct, facts)
+        t_done, _, _, stage, finished, z_c, steps, direct, facts = jax.lax.while_loop(
             cond, body, init
         )
+        _, _, skipped, found, finite, z_start = facts
         z, result, stats = direct
         # Solved by the continuation: a trial at t = 1 after the first pass.
         solved = finished & (stage > 1) & (t_done >= 1)
@@ -808,7 +851,14 @@ class _Continuation(eqx.Module):
             skipped & jnp.invert(solved), RESULTS.line_search_failed, result
         )
         result = RESULTS.where(solved, RESULTS.successful, result)
-        return z, result, {**stats, "num_steps": steps}
+        stats = {
+            **stats,
+            "num_steps": steps,
+            "_start_found": found,
+            "_start_finite": finite,
+            "_start_x": z_start[:num_unknowns],
+        }
+        return z, result, stats
 
 
 def _boundary_violation(functional, args):
@@ -1118,12 +1168,10 @@ def _solve_functional(
     # default start (not with holonomic constraints: the modes would leave them).
     user_start = y0 is not None and k > 0 and m == 0
     start_found = jnp.array(True)
-    if y0 is None and k == 0:
-        guess = _line(problem, straight_in=problem.discretization)
-    elif y0 is None:
-        # Satisfies the integral constraints where it can (see `_feasible_start`).
-        zero_offset = jnp.zeros((k,), dtype)
-        guess, start_found = _feasible_start(_stop_gradient(full_args), zero_offset)
+    if y0 is None:
+        # With integral constraints the start is built inside the solve (see
+        # `_Continuation`).
+        guess = _line(problem, straight_in=problem.discretization) if k == 0 else None
     elif callable(y0):
         guess = jax.vmap(lambda x: jnp.asarray(y0(x), dtype).reshape(n))(nodes)
     else:
@@ -1134,51 +1182,52 @@ def _solve_functional(
                 f"{num_nodes} nodes, shape {(num_nodes,) + shape}; got {guess.shape}."
             )
         guess = guess.reshape(num_nodes, n)
-    base = None
-    if user_start:
-        line = _line(problem)
-        base = jnp.concatenate([line[:1], guess[1:-1], line[-1:]], axis=0)
-        finite = jnp.all(jnp.isfinite(base))
-        base = jnp.where(finite, base, line)
-        zero_offset = jnp.zeros((k,), dtype)
-        moved, start_found = _feasible_start(
-            _stop_gradient(full_args), zero_offset, base
-        )
-        # A start that is not finite stays as it is: `RESULTS.invalid_input`.
-        start_found = start_found & finite
-        base = jax.lax.stop_gradient(base)
-        guess = jnp.where(start_found, moved, guess)
-    x0 = guess[1:-1].reshape(-1)
-
     if solver is None:
         solver = Newton(linear_solver=discretization.make_linear_solver(n, m, k))
     constraints = _constraints if m > 0 or k > 0 else None
-
-    start_ok = all_finite((x0, args, functional))
+    num_holonomic_rows = (num_nodes - 2) * m
     boundary_ok = jnp.array(True)
     if m > 0:
         violation, tol = _boundary_violation(functional, args)
-        boundary_ok = jnp.all(violation <= tol) | jnp.invert(start_ok)
-    x_safe = jnp.where(start_ok, x0, 0.0)
-    num_holonomic_rows = (num_nodes - 2) * m
-    lam0 = _start_multipliers(x_safe, _stop_gradient(full_args), num_holonomic_rows)
+        boundary_ok = jnp.all(violation <= tol)
 
     degenerate = jnp.array(False)
     check_line = m == 0 and k > 0
-    if check_line and default_start:
-        degenerate = _degenerate_at_line(_stop_gradient(full_args)) & start_ok
     if default_start or user_start:
-        line_values = _line(problem)[1:-1].reshape(-1)
-        r_line = _integral_constraints(line_values, full_args)
-        continue_ok = start_found & jnp.invert(degenerate)
-        reference = _line(problem) if base is None else base
-        sag = jnp.max(jnp.abs(guess - reference))
-        deep = sag > 2 * (functional.interval[1] - functional.interval[0])
+        # The start is built inside the solve (see `_Continuation`); `x_safe` and
+        # the multipliers here only give the shapes.
+        line = _line(problem)
+        base, user_guess, base_finite = None, None, jnp.array(True)
+        if user_start:
+            base = jnp.concatenate([line[:1], guess[1:-1], line[-1:]], axis=0)
+            base_finite = jnp.all(jnp.isfinite(base))
+            base = jnp.where(base_finite, base, line)
+            user_guess = guess
+        if check_line and default_start:
+            degenerate = _degenerate_at_line(_stop_gradient(full_args))
+        inputs_finite = all_finite((args, functional))
         continuation = _stop_gradient(
-            _Continuation(r_line, num_holonomic_rows, continue_ok, deep, base)
+            _Continuation(
+                r_line=_integral_constraints(line[1:-1].reshape(-1), full_args),
+                num_holonomic_rows=num_holonomic_rows,
+                degenerate=degenerate,
+                inputs_finite=inputs_finite,
+                base=base,
+                base_finite=base_finite,
+                user_guess=user_guess,
+                reference=line if base is None else base,
+                width=functional.interval[1] - functional.interval[0],
+            )
         )
+        x_safe = jnp.zeros((num_unknowns,), dtype)
+        lam0 = jnp.zeros((num_holonomic_rows + k,), dtype)
+        start_ok = inputs_finite
     else:
         continuation = None
+        x0 = guess[1:-1].reshape(-1)
+        start_ok = all_finite((x0, args, functional))
+        x_safe = jnp.where(start_ok, x0, 0.0)
+        lam0 = _start_multipliers(x_safe, _stop_gradient(full_args), num_holonomic_rows)
     kkt_problem = lagrangian_problem(_objective, constraints, None, x_safe, full_args)
     sol = kkt_solve(
         kkt_problem,
@@ -1190,6 +1239,14 @@ def _solve_functional(
         strategy=continuation,
     )
     z, result, stats = sol.z, sol.result, sol.stats
+    if continuation is not None:
+        stats = dict(stats)
+        start_found = stats.pop("_start_found")
+        start_ok = start_ok & stats.pop("_start_finite")
+        x_safe = stats.pop("_start_x")
+        degenerate = degenerate & start_ok
+    # A start that is not usable is reported as that, not as an inconsistent end.
+    boundary_ok = boundary_ok | jnp.invert(start_ok)
     if check_line and not default_start:
         # The degeneracy check costs about as much as the solve of a small problem, so
         # from a given start it runs only where it can matter: a degenerate problem has
