@@ -248,8 +248,9 @@ class Extremum(eqx.Module):
     !!! note
 
         `kind` is judged from the smallest and largest eigenvalue `mu` of the reduced
-        Hessian `Z^T H Z` (`Z` an orthonormal basis of `ker J`), computed by Lanczos:
-        exactly (to round-off) when `n - k <= 64`, as extreme Ritz values otherwise.
+        Hessian `Z^T H Z` (`Z` an orthonormal basis of `ker J`): from the formed
+        matrix when `n <= 64`, by Lanczos otherwise (exactly, to round-off, when
+        `n - k <= 64`, as extreme Ritz values beyond).
         An eigenvalue counts as zero when `|mu| <= sqrt(eps) max(1, |mu_min|,
         |mu_max|)`, an absolute floor for tiny Hessians and relative otherwise. It is
         meaningful only when `result` is successful, and is `EXTREMUM.unknown`
@@ -892,7 +893,7 @@ def _second_order(problem: KKTProblem, sol: KKTSolution, constraints, args, aug,
     if m:
         jac_g = None if k == 0 else constraint_jacobian(constraints, xs, args)
         # Two subspaces (below), one batched eigendecomposition and one batched
-        # Lanczos: one compiled body each.
+        # reduced Hessian: one compiled body each.
         which = jnp.stack([sol.strict, sol.active])
         if problem.bounds:
             diag_h = problem.bound_derivatives(xs, aug)

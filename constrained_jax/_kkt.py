@@ -24,7 +24,8 @@ whose Jacobian (`m = 0`) is the symmetric saddle-point matrix
 - `kkt_residual`: `(grad F + J^T lambda, G)` by one reverse-mode pass;
 - `constraint_jacobian`, `tangent_projector`: the constraint geometry;
 - `reduced_hessian_extremes`: the Hessian of `F*` restricted to the tangent space of
-  the constraints, by Lanczos, which decides minimum / maximum / saddle.
+  the constraints (formed for small `n`, Lanczos beyond), which decides minimum /
+  maximum / saddle.
 """
 
 from collections.abc import Callable
@@ -115,11 +116,20 @@ def reduced_hessian_extremes(
     the extreme Ritz values (which approach the true extremes from inside the
     spectrum).
 
-    Returns `[nan, nan]` when the tangent space is `{0}` (`k == n`).
+    Up to `n = num_steps` unknowns the restricted Hessian is formed instead (`n`
+    Hessian-vector products in one batch, an orthonormal basis of the range of the
+    projector from its eigendecomposition) and its extreme eigenvalues taken
+    directly: the same eigenvalues as the exact Lanczos run, from a program with no
+    loop, which compiles faster.
+
+    Returns `[nan, nan]` when the tangent space is `{0}` (`k == n`, or a projector
+    onto `{0}`).
     """
     m = min(n - k, num_steps)
     if m <= 0:
         return jnp.full((2,), jnp.nan, dtype)
+    if n <= num_steps:
+        return _dense_extremes(hvp, project, n, dtype)
     start = jax.random.normal(jax.random.key(0), (n,), dtype)
     v = project(start)
     v = v / jnp.linalg.norm(v)
@@ -163,6 +173,26 @@ def reduced_hessian_extremes(
     tri = jnp.diag(alphas) + jnp.diag(off, 1) + jnp.diag(off, -1)
     eigs = jnp.linalg.eigvalsh(tri)
     return jnp.stack([eigs[0], eigs[-1]])
+
+
+def _dense_extremes(hvp, project, n: int, dtype) -> Float[Array, "2"]:
+    """`reduced_hessian_extremes` for small `n`, from the formed matrix."""
+    eye = jnp.eye(n, dtype=dtype)
+    proj = jax.vmap(project)(eye)
+    proj = 0.5 * (proj + proj.T)
+    # The range of the orthogonal projector: its eigenvectors of eigenvalue one.
+    levels, vecs = jnp.linalg.eigh(proj)
+    inside = levels > 0.5
+    hess = vecs.T @ jax.vmap(hvp)(vecs.T).T
+    hess = 0.5 * (hess + hess.T)
+    hess = jnp.where(inside[:, None] & inside[None, :], hess, 0.0)
+    # Directions outside the range moved beyond the spectrum (on either side), so
+    # that the extreme eigenvalues are those of the restricted Hessian.
+    big = 2 * jnp.max(jnp.sum(jnp.abs(hess), axis=1)) + 1
+    shift = jnp.where(inside, 0.0, big)
+    lo = jnp.linalg.eigvalsh(hess + jnp.diag(shift))[0]
+    hi = jnp.linalg.eigvalsh(hess - jnp.diag(shift))[-1]
+    return jnp.where(jnp.any(inside), jnp.stack([lo, hi]), jnp.nan)
 
 
 # ---------------------------------------------------------------------------------

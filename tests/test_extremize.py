@@ -350,3 +350,33 @@ def test_closure_over_arrays_is_differentiable():
     np.testing.assert_allclose(solve(target), target - (6.0 - 1.0) / 3, rtol=1e-12)
     jac = jax.jacobian(solve)(target)
     np.testing.assert_allclose(jac, jnp.eye(3) - 1 / 3, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [0, 3, 9])
+def test_reduced_hessian_extremes_formed_and_lanczos(k):
+    """The extreme eigenvalues of `Z^T H Z` (`Z` an orthonormal basis of `ker J`):
+    the formed matrix (small `n`) and the exact Lanczos run (`n - k` steps) both
+    against NumPy's eigenvalues; with `k = n - 3` and a projector onto a subspace
+    of dimension 3, the directions outside it must not show up."""
+    from constrained_jax._kkt import reduced_hessian_extremes
+
+    n = 12
+    rng = np.random.default_rng(k)
+    a = rng.normal(size=(n, n))
+    hess = a + a.T
+    jac = rng.normal(size=(k, n))
+    z = np.linalg.svd(jac)[2][k:].T if k else np.eye(n)  # orthonormal basis of ker J
+    expected = np.linalg.eigvalsh(z.T @ hess @ z)[[0, -1]]
+    proj = jnp.asarray(z @ z.T)
+    hvp = lambda v: jnp.asarray(hess) @ v
+    project = lambda v: proj @ v
+    formed = reduced_hessian_extremes(hvp, project, n, k, jnp.float64)
+    np.testing.assert_allclose(formed, expected, rtol=1e-10, atol=1e-10)
+    if k:  # `n > num_steps = n - k`: Lanczos, exact after `n - k` steps
+        lanczos = reduced_hessian_extremes(
+            hvp, project, n, k, jnp.float64, num_steps=n - k
+        )
+        np.testing.assert_allclose(lanczos, expected, rtol=1e-8, atol=1e-8)
+    # A projector onto {0}: no tangent space.
+    nothing = reduced_hessian_extremes(hvp, lambda v: 0 * v, n, k, jnp.float64)
+    assert bool(jnp.all(jnp.isnan(nothing)))
