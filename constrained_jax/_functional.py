@@ -644,36 +644,28 @@ def _feasible_start(full_args, offset, base=None):
     )
     starts = amplitude * jnp.stack([first, -first, generic, -generic]).reshape(4, -1)
 
-    if base is not None:
-        # The base itself first (`u = 0`); the finite amplitudes only where that
-        # fails. All five searches run in one batch: one copy of the search in the
-        # compiled program (each copy costs about a second of compilation).
-        starts = jnp.concatenate([jnp.zeros_like(starts[:1]), starts])
-    u, feasible, value, infeasibility = jax.vmap(search)(starts)
-    if base is not None:
-        itself = feasible[0]
-        u0 = u[0]
-        u, feasible, value, infeasibility = (
-            u[1:],
-            feasible[1:],
-            value[1:],
-            infeasibility[1:],
+    def from_modes():
+        u, feasible, value, infeasibility = jax.vmap(search)(starts)
+        value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
+        infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
+        best = jnp.where(
+            jnp.any(feasible[:2]),
+            jnp.argmin(value[:2]),
+            jnp.where(
+                jnp.any(feasible[2:]),
+                2 + jnp.argmin(value[2:]),
+                jnp.argmin(infeasibility),
+            ),
         )
-    value = jnp.where(feasible & jnp.isfinite(value), value, jnp.inf)
-    infeasibility = jnp.where(jnp.isnan(infeasibility), jnp.inf, infeasibility)
-    best = jnp.where(
-        jnp.any(feasible[:2]),
-        jnp.argmin(value[:2]),
-        jnp.where(
-            jnp.any(feasible[2:]),
-            2 + jnp.argmin(value[2:]),
-            jnp.argmin(infeasibility),
-        ),
-    )
-    u, feasible = u[best], feasible[best]
-    if base is not None:
-        u = jnp.where(itself, u0, u)
-        feasible = itself | feasible
+        return u[best], feasible[best]
+
+    if base is None:
+        u, feasible = from_modes()
+    else:
+        # The base itself first; the finite amplitudes only where that fails (a
+        # separate search: batched with them, it would cost as much as all of them).
+        u0, feasible0, _, _ = search(jnp.zeros_like(starts[0]))
+        u, feasible = jax.lax.cond(feasible0, lambda: (u0, feasible0), from_modes)
     return modes.values(u), feasible
 
 
